@@ -1,0 +1,52 @@
+# sudd: two commands do everything on a fresh Debian/Ubuntu machine.
+#   make demo   set up, then run the main job on the embedded default (sim arm, sim camera)
+#   make test   set up, then run the test suite
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+# Debian packages: EGL/OSMesa for headless MuJoCo rendering, libusb for pyrealsense2.
+SYSTEM_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 libusb-1.0-0
+export MUJOCO_GL ?= egl
+export PYTHONUNBUFFERED := 1
+
+.PHONY: demo test setup system-deps bench clean help
+
+help:
+	@echo "make demo   - set up .venv and run the demo (writes out/demo)"
+	@echo "make test   - set up .venv and run the tests"
+	@echo "make bench  - print the benchmark figures as JSON"
+
+setup: $(VENV)/.installed
+
+system-deps:
+	@missing=""; for p in $(SYSTEM_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing system packages:$$missing"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $$missing >/dev/null || exit 1; \
+	  else \
+	    echo "missing system packages:$$missing"; \
+	    echo "run: sudo apt-get install -y$$missing   (then re-run make)"; exit 1; \
+	  fi; \
+	fi
+
+$(VENV)/.installed: pyproject.toml | system-deps
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	@touch $@
+
+demo: setup
+	$(VENV)/bin/sudd sim demo --dr heavy --seed 0 --out out/demo
+	$(VENV)/bin/sudd sim preview --task pick_place --dr heavy --seed 0 --out out/demo/dr_grid.png
+
+test: setup
+	$(VENV)/bin/python -m pytest -q
+
+bench: setup
+	$(VENV)/bin/sudd bench sim --json
+
+clean:
+	rm -rf $(VENV) out .pytest_cache
