@@ -39,11 +39,13 @@ def run_oracle_episode(task: str, seed: int, dr: str, fidelity: str, frames: int
     return ep.success(), world.time, wall, [shots[i] for i in idx], ep.instruction
 
 
-def strip(images: list[np.ndarray], caption: str, ok: bool) -> Image.Image:
+def strip(images: list[np.ndarray], caption: str, ok: bool, per_row: int = 4) -> Image.Image:
+    """The episode's frames left to right, top to bottom, under a caption with the verdict."""
     h, w = images[0].shape[:2]
-    canvas = Image.new("RGB", (w * len(images), h + 22), (20, 20, 20))
+    rows = -(-len(images) // per_row)
+    canvas = Image.new("RGB", (w * min(per_row, len(images)), h * rows + 22), (20, 20, 20))
     for i, img in enumerate(images):
-        canvas.paste(Image.fromarray(img), (i * w, 22))
+        canvas.paste(Image.fromarray(img), ((i % per_row) * w, 22 + (i // per_row) * h))
     draw = ImageDraw.Draw(canvas)
     draw.text((6, 5), f"{'SUCCESS' if ok else 'FAILED'}  {caption}", fill=(120, 230, 120) if ok else (240, 110, 110))
     return canvas

@@ -45,7 +45,7 @@ class CameraPose:
         return quat.tolist()
 
 
-DEFAULT_SCENE_CAMERA = CameraPose(pos=(0.0, 1.45, 0.80), target=(0.0, 0.30, 0.08), fovy_deg=D435_COLOR.fovy_deg)
+DEFAULT_SCENE_CAMERA = CameraPose(pos=(0.0, 1.55, 1.00), target=(0.0, 0.25, 0.15), fovy_deg=D435_COLOR.fovy_deg)
 DEFAULT_LIGHTS = (((0.6, 0.9, 1.6), 0.55), ((-0.8, -0.2, 1.8), 0.35))
 
 
