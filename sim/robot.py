@@ -46,6 +46,7 @@ SERVO_KV = (400.0, 400.0, 400.0, 40.0, 40.0, 40.0)
 
 # Menagerie's shoulder and elbow lateral offsets; the wrist_2 offset makes up d4 from them.
 _SHOULDER_Y = 0.138
+_UR5E_D1 = 0.163  # the d1 Menagerie's UR5e meshes and capsules were drawn for
 _ELBOW_Y = -0.131
 
 
@@ -132,6 +133,11 @@ def robot_spec(variant: RobotVariant | str = "ur5e") -> mujoco.MjSpec:
         spec.delete(light)  # the scene owns the lights (and randomizes them)
 
     spec.body("shoulder_link").pos = [0.0, 0.0, variant.d1]
+    # Menagerie's shoulder capsule hangs 4 cm below the shoulder joint of a UR5e; keep its bottom on the
+    # base for arms with another d1 (the CB3 UR5's shoulder sits 7 cm lower).
+    for geom in spec.body("shoulder_link").geoms:
+        if geom.classname.name == "collision":
+            geom.pos = [0.0, 0.0, -0.04 + (_UR5E_D1 - variant.d1)]
     spec.body("upper_arm_link").pos = [0.0, _SHOULDER_Y, 0.0]
     spec.body("forearm_link").pos = [0.0, _ELBOW_Y, -variant.a2]
     spec.body("wrist_1_link").pos = [0.0, 0.0, -variant.a3]
@@ -153,9 +159,13 @@ def robot_spec(variant: RobotVariant | str = "ur5e") -> mujoco.MjSpec:
 
     set_contact_options(spec)
     gripper = mujoco.MjSpec.from_file(str(robotiq_2f85_xml()))
-    for cls_name in ("pad_box1", "pad_box2"):
-        # Silicone pads on a hard object: friction ~1 keeps a grasp through the arm's accelerations.
-        gripper.find_default(cls_name).geom.friction = [1.2, 0.01, 0.001]
+    for geom in gripper.geoms:
+        if "_pad" in geom.name:
+            # Silicone pads on a hard object: friction ~1 with torsional friction (condim 4) keeps a grasp
+            # through the arm's accelerations. (Set on the geoms: changing the default class after the file
+            # is parsed would not reach them.)
+            geom.friction = [1.2, 0.01, 0.001]
+            geom.condim = 4
     actuator = gripper.actuator("fingers_actuator")
     actuator.forcerange = [-20.0, 20.0]  # a firmer squeeze than Menagerie's 5 N default, as the real 2F-85
     base = gripper.body("base")
