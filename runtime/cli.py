@@ -35,10 +35,13 @@ def build_parser() -> argparse.ArgumentParser:
 def _bench(args) -> int:
     import importlib
 
-    module, func = BENCH_AREAS[args.area].split(":")
-    figures = getattr(importlib.import_module(module), func)(quick=args.quick)
+    module_name, func = BENCH_AREAS[args.area].split(":")
+    module = importlib.import_module(module_name)
+    figures = getattr(module, func)(quick=args.quick)
     if args.json:
         print(json.dumps(figures, indent=2))
+    elif hasattr(module, "format_table"):
+        print(module.format_table(figures))
     else:
         for key, value in _flatten(figures):
             print(f"{key:50s} {value}")

@@ -95,7 +95,7 @@ def _spec_level(spec: mujoco.MjSpec) -> str | None:
 # -- the fast robot -------------------------------------------------------------------------------------------
 # Each entry: ("cyl", axis, radius, start, end, material[, (centre_a, centre_b)]) for a cylinder along a body
 # axis ("x", "y" or "z") from `start` to `end`, centred on the other two coordinates (default 0, 0); or
-# ("box", centre, half_sizes, material[, euler_x]) for a box, optionally tilted about the body's x axis (rad).
+# ("box", centre, half_sizes, material[, tilt_x]) for a box, optionally tilted about the body's x axis (rad).
 # Dimensions come from the Menagerie meshes (their extents in each body frame); materials are the models' own.
 
 _UR_BLACK, _UR_JOINT, _UR_LINK, _UR_BLUE = "black", "jointgray", "linkgray", "urblue"
@@ -231,11 +231,13 @@ def _simplify_robot(spec: mujoco.MjSpec) -> None:
             todo.append((body, visual, body_parts))
     # Bodies with an explicit inertial first: dropping their meshes makes the inertia inference below cheaper.
     todo.sort(key=lambda item: not item[0].explicitinertial)
+    replaced: set[str] = set()
     for body, visual, body_parts in todo:
         if not body.explicitinertial:
             # MuJoCo would infer this body's inertia from its geoms, the visual meshes included: freeze it.
-            _delete_unused_meshes(spec)
+            _delete_unused_meshes(spec, replaced)
             _freeze_inertia(spec, body)
+        replaced |= {g.meshname for g in visual}
         # Reuse the mesh geoms as primitives (deleting spec elements is slow), then add or drop the difference.
         for geom, part in zip(visual, body_parts):
             _set_part(spec, geom, part)
@@ -243,7 +245,7 @@ def _simplify_robot(spec: mujoco.MjSpec) -> None:
             _set_part(spec, body.add_geom(), part)
         for geom in visual[len(body_parts):]:
             spec.delete(geom)
-    _delete_unused_meshes(spec)
+    _delete_unused_meshes(spec, replaced)
 
 
 # Inertias inferred from geoms, by what they were inferred from: inferring one compiles the spec, so a
@@ -258,7 +260,9 @@ def _inertia_key(spec: mujoco.MjSpec, body: mujoco.MjsBody) -> tuple:
     geoms = []
     for g in body.geoms:
         mesh = spec.mesh(g.meshname) if g.type == mujoco.mjtGeom.mjGEOM_MESH else None
-        mesh_key = (mesh.file, vec(mesh.scale), int(mesh.inertia), vec(mesh.refpos), vec(mesh.refquat)) if mesh else None
+        mesh_key = None
+        if mesh is not None:
+            mesh_key = (mesh.file, vec(mesh.scale), int(mesh.inertia), vec(mesh.refpos), vec(mesh.refquat))
         alt = g.alt
         orientation = (int(alt.type), vec(alt.axisangle), vec(alt.euler), vec(alt.xyaxes), vec(alt.zaxis))
         geoms.append((int(g.type), mesh_key, vec(g.size), vec(g.pos), vec(g.quat), orientation, vec(g.fromto),
@@ -280,8 +284,10 @@ def _freeze_inertia(spec: mujoco.MjSpec, body: mujoco.MjsBody) -> None:
     body.mass, body.ipos, body.iquat, body.inertia, body.fullinertia = cached
 
 
-def _delete_unused_meshes(spec: mujoco.MjSpec) -> None:
+def _delete_unused_meshes(spec: mujoco.MjSpec, candidates: set[str]) -> None:
+    """Delete the meshes among `candidates` (the replaced visual meshes) that no geom uses any more."""
     used = {g.meshname for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH}
-    for mesh in list(spec.meshes):
-        if mesh.name not in used:
+    for name in sorted(candidates - used):
+        mesh = spec.mesh(name)
+        if mesh is not None:
             spec.delete(mesh)

@@ -73,7 +73,7 @@ def base_scene(variant: RobotVariant | str = "ur5e") -> mujoco.MjSpec:
         mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"{surface}_tex"
 
     world = spec.worldbody
-    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], pos=[0, 0, FLOOR_Z],
+    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.5], pos=[0, 0, FLOOR_Z],
                    material="floor_mat")
     tx, ty = TABLE_CENTRE
     world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(TABLE_HALF),
