@@ -24,10 +24,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import mujoco
 import numpy as np
 
 from sim.config import spec, validate
+from sim.kinematics import matrix_to_rotvec
 from sim.devices import (
     SERVO_GAIN_RANGE,
     SERVO_LOOKAHEAD_RANGE,
@@ -50,17 +50,6 @@ class ArmNoiseConfig:
     q_std: float = field(default=0.0, metadata=spec(0.0, 0.01, "rad"))
     qd_std: float = field(default=0.0, metadata=spec(0.0, 0.1, "rad/s"))
     seed: int = 0
-
-
-def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """UR's rotation vector (angle in [0, pi]) of a rotation matrix."""
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(R, dtype=float).reshape(9))
-    if quat[0] < 0:
-        quat = -quat
-    vec = np.zeros(3)
-    mujoco.mju_quat2Vel(vec, quat, 1.0)
-    return vec
 
 
 class SimArm:
