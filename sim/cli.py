@@ -25,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     prev.add_argument("--dr", default="heavy", help="DR preset off|light|heavy, or a TOML file of overrides")
     prev.add_argument("--seed", type=int, default=0, help="first episode seed")
     prev.add_argument("--count", type=int, default=12, help="number of episodes in the grid")
+    prev.add_argument("--fidelity", default="full", choices=("full", "fast"), help="rendering fidelity")
     prev.add_argument("--out", type=Path, default=Path("grid.png"), help="output PNG path")
     prev.set_defaults(func=_preview)
 
@@ -57,7 +58,7 @@ def _preview(args) -> int:
     from sim.tasks import get_task
 
     get_task(args.task)  # fail early with the list of tasks
-    path = preview_grid(args.task, args.dr, args.seed, args.out, count=args.count)
+    path = preview_grid(args.task, args.dr, args.seed, args.out, count=args.count, fidelity=args.fidelity)
     print(f"wrote {path}")
     return 0
 
