@@ -13,6 +13,7 @@ BENCH_AREAS = {"sim": "sim.bench:run_sim_bench"}
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from datagen import cli as data_cli
     from sim import cli as sim_cli
 
     parser = argparse.ArgumentParser(
@@ -21,6 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  sudd sim demo --out out/demo\n  sudd bench sim --json")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sim_cli.register(sub)
+    data_cli.register(sub)
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
                            description="Run a benchmark area and print its figures; --json prints one JSON object.",

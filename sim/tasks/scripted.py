@@ -66,7 +66,11 @@ class Scripted:
     def move_pose(self, T_goal, straight: bool = False, min_time: float = 0.3) -> None:
         """Go to a TCP pose: a joint-space min-jerk move, or a straight Cartesian line when `straight`."""
         if not straight:
-            self.move_joints(self.kin.ik(T_goal, self.q_cmd), min_time)
+            # Free moves stay on the home configuration's branch (elbow up, wrist over the table): the branch
+            # nearest the current joints can be a contorted one that sweeps the arm through the scene.
+            reference = np.asarray(self.world.variant.home, dtype=float)
+            reference[5] = self.q_cmd[5]
+            self.move_joints(self.kin.ik(T_goal, reference), min_time)
             return
         T0 = self.kin.fk(self.q_cmd)
         dist = float(np.linalg.norm(T_goal[:3, 3] - T0[:3, 3]))

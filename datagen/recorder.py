@@ -1,0 +1,77 @@
+"""Samples an executing episode at the policy rate: both cameras, proprioception, commanded targets.
+
+It is the `observer` of `datagen.trajectory.execute`: called after every physics step, it records a sample
+whenever the policy clock ticks. The action of step t is the commanded end-effector target of step t + 1,
+so a policy trained on it learns to output where the arm should be one control period later.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from datagen.schema import ACTION_DIM, CAMERAS, CONTROL_HZ, IMAGE_SIZE, PROPRIO_DIM, EpisodeData, rot6d
+from sim.kinematics import Kinematics
+from sim.randomize import corrupt_image, sample_sensor_params
+from sim.render import CameraRenderer
+from sim.robot import TCP_OFFSET_Z, WRIST_CAMERA
+from sim.scene import SCENE_CAMERA
+
+CAMERA_NAMES = {"scene": SCENE_CAMERA, "wrist": WRIST_CAMERA}
+
+
+class Recorder:
+    """Collects one episode's samples; `finish(meta)` turns them into an `EpisodeData`."""
+
+    def __init__(self, episode, image_size=IMAGE_SIZE, hz: float = CONTROL_HZ, shadows: bool | None = None):
+        self.world = episode.world
+        self.kin = Kinematics.with_tcp_z(self.world.variant, TCP_OFFSET_Z)
+        self.period = 1.0 / hz
+        self.next_t = 0.0
+        self.subtask = -1
+        self._rng = episode.rngs.sensor
+        self._sensor = sample_sensor_params(episode.dr.sensor, self._rng)
+        h, w = image_size
+        self._cams = CameraRenderer(self.world, w, h, shadows=shadows)
+        self._images: dict[str, list[np.ndarray]] = {c: [] for c in CAMERAS}
+        self._proprio: list[np.ndarray] = []
+        self._target: list[np.ndarray] = []
+        self._subtasks: list[int] = []
+        self._times: list[float] = []
+
+    def __call__(self, world, label: str = "") -> None:
+        if world.time + 1e-9 < self.next_t:
+            return
+        self.next_t += self.period
+        self.sample()
+
+    def sample(self) -> None:
+        w = self.world
+        for name in CAMERAS:
+            img = self._cams.rgb(CAMERA_NAMES[name])
+            self._images[name].append(corrupt_image(img, self._sensor, self._rng))
+        T = w.tcp_pose()
+        q = w.arm_q() + self._rng.normal(0.0, self._sensor.q_noise_std, 6) if self._sensor.q_noise_std else w.arm_q()
+        self._proprio.append(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [w.gripper_position()], q]))
+        Tc = self.kin.fk(w.arm_target())
+        self._target.append(np.concatenate([Tc[:3, 3], rot6d(Tc[:3, :3]), [w.gripper_command()]]))
+        self._subtasks.append(self.subtask)
+        self._times.append(w.time)
+
+    def finish(self, meta: dict) -> EpisodeData:
+        self.sample()  # the final state, so the last action is the arm's resting target
+        self._cams.close()
+        targets = np.asarray(self._target, dtype=np.float32)
+        action = np.concatenate([targets[1:], targets[-1:]], axis=0)
+        data = EpisodeData(
+            images={c: np.stack(v) for c, v in self._images.items()},
+            proprio=np.asarray(self._proprio, dtype=np.float32).reshape(-1, PROPRIO_DIM),
+            action=action.reshape(-1, ACTION_DIM),
+            subtask=np.asarray(self._subtasks, dtype=np.int16),
+            time=np.asarray(self._times, dtype=np.float64),
+            meta=dict(meta, sensor=self._sensor.record()),
+        )
+        data.validate()
+        return data
+
+    def close(self) -> None:
+        self._cams.close()

@@ -1,0 +1,80 @@
+"""One recorded episode, as the episode runner produces it and the dataset store writes it.
+
+Per step (at `CONTROL_HZ`): both cameras' colour images, proprioception, the action (absolute end-effector
+target: position, 6-D rotation, gripper), and which subtask was running. Per episode: the language (root
+task and subtask labels), retries, the success label with the check snippet's verdict beside the ground-truth
+predicate, the seed and the domain-randomization record. Schema changes bump `SCHEMA_VERSION`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+CONTROL_HZ = 10.0  # observation/action rate of the recorded data (the policy's rate)
+CAMERAS = ("scene", "wrist")  # dataset names of sim.scene.SCENE_CAMERA and sim.robot.WRIST_CAMERA
+IMAGE_SIZE = (128, 128)  # (height, width) of recorded images
+# proprio = TCP position (3), TCP rotation as the first two columns of its matrix (6), gripper closure (1),
+# joint angles (6)
+PROPRIO_DIM = 16
+# action = target TCP position (3), target rotation 6-D (6), gripper command (1: 0 open .. 1 closed)
+ACTION_DIM = 10
+
+
+def rot6d(R: np.ndarray) -> np.ndarray:
+    """The 6-D rotation representation (Zhou et al. 2019): the first two columns of R, column-major."""
+    return np.concatenate([R[:, 0], R[:, 1]])
+
+
+def rot6d_to_matrix(d6: np.ndarray) -> np.ndarray:
+    """Gram-Schmidt back to a rotation matrix (robust to a network's non-orthogonal output)."""
+    a, b = np.asarray(d6[:3], float), np.asarray(d6[3:6], float)
+    x = a / np.linalg.norm(a)
+    b = b - x * (x @ b)
+    y = b / np.linalg.norm(b)
+    return np.column_stack([x, y, np.cross(x, y)])
+
+
+@dataclass
+class EpisodeData:
+    """Everything recorded for one episode; arrays share the leading step axis (length T)."""
+
+    images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
+    proprio: np.ndarray  # (T, PROPRIO_DIM) float32
+    action: np.ndarray  # (T, ACTION_DIM) float32
+    subtask: np.ndarray  # (T,) int16 index into meta["subtasks"]; -1 while recovering
+    time: np.ndarray  # (T,) float64 sim seconds
+    meta: dict = field(default_factory=dict)  # JSON-able: see `EPISODE_META_KEYS`
+
+    def __len__(self) -> int:
+        return int(self.action.shape[0])
+
+    def validate(self) -> None:
+        T = len(self)
+        for name, arr in self.images.items():
+            if name not in CAMERAS or arr.dtype != np.uint8 or arr.ndim != 4 or arr.shape[0] != T:
+                raise ValueError(f"image stream {name!r}: expected (T={T}, H, W, 3) uint8, got {arr.shape} {arr.dtype}")
+        for name, arr, dim in (("proprio", self.proprio, PROPRIO_DIM), ("action", self.action, ACTION_DIM)):
+            if arr.shape != (T, dim) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name}: expected finite ({T}, {dim}), got {arr.shape}")
+        if self.subtask.shape != (T,) or self.time.shape != (T,):
+            raise ValueError("subtask and time must have one entry per step")
+        missing = [k for k in EPISODE_META_KEYS if k not in self.meta]
+        if missing:
+            raise ValueError(f"episode meta is missing {missing}")
+
+
+EPISODE_META_KEYS = (
+    "task",  # task family name
+    "seed",  # episode seed: (task, seed) reproduces the episode
+    "instruction",  # the root task's language
+    "subtasks",  # list of subtask labels (language), indexed by `subtask`
+    "success",  # ground-truth task predicate at the end (sim/tasks)
+    "check_success",  # the plan's check snippets' verdict for the whole task
+    "label",  # the success label used for training, and which source it came from
+    "retries",  # total retries across subtasks
+    "planner",  # "offline" or "llm:<model>"
+    "dr",  # the domain-randomization record
+)
