@@ -2,6 +2,9 @@
 
 Each entry of FACTORIES is a context manager yielding a `Bench`: the three drivers plus the few
 harness hooks a test needs (let time pass, fault injection, putting an object between the fingers).
+Benches of a single real driver (no arm to go with them) are listed only for their device's tests:
+GRIPPER_FACTORIES adds the real Robotiq driver against a loopback URCap server, CAMERA_FACTORIES the real
+RealSense driver on a librealsense software device; their other devices are None.
 Today only the sim twins in lock-step mode are listed (UR5e at 500 Hz and UR5/CB3 at 125 Hz); a real-hardware bench (ur_rtde + Robotiq socket +
 RealSense) is added as another `pytest.param(..., marks=pytest.mark.skipif(<no hardware>))` and must pass
 the same tests. Hooks a bench cannot provide are None and their tests skip (e.g. fault injection on
@@ -15,6 +18,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")  # before the first mujoco import: headless rendering
 
 import contextlib  # noqa: E402
+import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from typing import Callable  # noqa: E402
 
@@ -33,11 +37,11 @@ from sim.devices import (  # noqa: E402
 
 @dataclass
 class Bench:
-    arm: ArmDriver
-    gripper: GripperDriver
-    camera: CameraDriver
+    arm: ArmDriver | None  # None only in single-device benches (GRIPPER_/CAMERA_FACTORIES)
+    gripper: GripperDriver | None
+    camera: CameraDriver | None
     wait: Callable[[float], None]  # let this many seconds of device time pass
-    safe_q: np.ndarray  # a configuration with room for ±0.2 rad on every joint
+    safe_q: np.ndarray | None  # a configuration with room for ±0.2 rad on every joint (None without an arm)
     trigger_protective_stop: Callable[[], None] | None = None
     present_object: Callable[[], None] | None = None  # put a graspable object between the open fingers
 
@@ -73,10 +77,48 @@ def sim_lockstep_bench(variant: str = "ur5e"):
                     trigger_protective_stop=rig.trigger_protective_stop, present_object=present_object)
 
 
+@contextlib.contextmanager
+def robotiq_loopback_bench():
+    """The real Robotiq2F85 driver against the URCap protocol served on loopback by a simulated 2F-85."""
+    import sys
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[1])  # hil_tests is not an installed package
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    from hil_tests.fakes.robotiq_server import FakeRobotiqServer
+    from runtime.drivers.robotiq import Robotiq2F85, RobotiqConfig
+
+    with FakeRobotiqServer(speed_scale=5.0) as server:
+        gripper = Robotiq2F85(RobotiqConfig(*server.address, timeout=1.0))
+        try:
+            yield Bench(arm=None, gripper=gripper, camera=None, wait=time.sleep, safe_q=None,
+                        present_object=lambda: server.place_object(128))  # an object 50 % closed
+        finally:
+            gripper.disconnect()
+
+
+@contextlib.contextmanager
+def realsense_software_bench():
+    """The real RealSenseCamera driver (pipeline, syncer, align) on a librealsense software device at 30 fps."""
+    pytest.importorskip("pyrealsense2")
+    from runtime.drivers.realsense import RealSenseCamera, RealSenseConfig, SoftwareD435
+
+    source = SoftwareD435().feed()
+    camera = RealSenseCamera(RealSenseConfig(serial=source.serial, width=96, height=72), context=source)
+    try:
+        yield Bench(arm=None, gripper=None, camera=camera, wait=time.sleep, safe_q=None)
+    finally:
+        camera.stop()
+        source.stop_feed()
+
+
 FACTORIES = [
     pytest.param(sim_lockstep_bench, id="sim-lockstep-ur5e"),  # e-Series, 500 Hz
     pytest.param(lambda: sim_lockstep_bench("ur5"), id="sim-lockstep-ur5"),  # CB3, 125 Hz
 ]
+GRIPPER_FACTORIES = FACTORIES + [pytest.param(robotiq_loopback_bench, id="robotiq-loopback")]
+CAMERA_FACTORIES = FACTORIES + [pytest.param(realsense_software_bench, id="realsense-software")]
 
 
 @pytest.fixture(params=FACTORIES)
@@ -188,6 +230,7 @@ def test_protective_stop_blocks_commands_until_unlock_after_5s(bench):
 
 
 # -- gripper -------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bench", GRIPPER_FACTORIES, indirect=True)
 def test_gripper_opens_and_closes(bench):
     g = bench.gripper
     assert isinstance(g, GripperDriver)
@@ -209,6 +252,7 @@ def test_gripper_opens_and_closes(bench):
     assert g.state().timestamp_ns > t1
 
 
+@pytest.mark.parametrize("bench", GRIPPER_FACTORIES, indirect=True)
 def test_gripper_detects_object_only_when_holding(bench):
     if bench.present_object is None:
         pytest.skip("this bench cannot place an object between the fingers")
@@ -225,6 +269,7 @@ def test_gripper_detects_object_only_when_holding(bench):
 
 
 # -- camera ---------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bench", CAMERA_FACTORIES, indirect=True)
 def test_camera_frames(bench):
     cam = bench.camera
     assert isinstance(cam, CameraDriver) and cam.name
