@@ -9,11 +9,16 @@ import argparse
 import json
 import sys
 
-BENCH_AREAS = {"sim": "sim.bench:run_sim_bench"}
+BENCH_AREAS = {
+    "sim": "sim.bench:run_sim_bench",
+    "datagen": "datagen.bench:run_datagen_bench",
+    "bus": "runtime.bench_bus:run_bus_bench",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
     from datagen import cli as data_cli
+    from datagen import generate_cli
     from sim import cli as sim_cli
 
     parser = argparse.ArgumentParser(
@@ -22,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  sudd sim demo --out out/demo\n  sudd bench sim --json")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sim_cli.register(sub)
+    generate_cli.register(sub)
     data_cli.register(sub)
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
