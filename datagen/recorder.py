@@ -59,7 +59,7 @@ class Recorder:
 
     def finish(self, meta: dict) -> EpisodeData:
         self.sample()  # the final state, so the last action is the arm's resting target
-        self._cams.close()
+        self.close()
         targets = np.asarray(self._target, dtype=np.float32)
         action = np.concatenate([targets[1:], targets[-1:]], axis=0)
         data = EpisodeData(
@@ -74,4 +74,6 @@ class Recorder:
         return data
 
     def close(self) -> None:
-        self._cams.close()
+        if self._cams is not None:
+            self._cams.close()
+            self._cams = None

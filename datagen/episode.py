@@ -1,0 +1,122 @@
+"""One data-generation episode: plan from language, run primitives, verify each subtask, retry, record.
+
+The loop of "Scaling Up and Distilling Down": the planner splits the instruction into subtasks; each runs a
+sampling-based primitive, then its success-check snippet in the sandbox. A failed check triggers a recovery
+(open, retreat) and a retry with a fresh sample, so the data holds recoveries. The episode records both the
+plan's own verdict and the task's ground-truth predicate, and says which one is the training label.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from datagen.plan import PRIMITIVES, describe
+from datagen.planner import make_planner
+from datagen.primitives import PrimitiveFailed, Primitives
+from datagen.recorder import Recorder
+from datagen.sandbox import SandboxError, run_check
+from datagen.schema import IMAGE_SIZE, EpisodeData
+from datagen.trajectory import execute
+from sim.build import build_episode
+from sim.config import spec
+from sim.state import StateView
+
+log = logging.getLogger(__name__)
+LABEL_SOURCES = ("ground_truth", "check")
+
+
+@dataclass(frozen=True)
+class DatagenConfig:
+    """How episodes are generated; recorded with every dataset."""
+
+    dr: str = field(default="heavy", metadata=spec(doc="DR preset off|light|heavy or a TOML path"))
+    fidelity: str = field(default="fast", metadata=spec(choices=("full", "fast")))
+    image_size: tuple[int, int] = field(default=IMAGE_SIZE, metadata=spec(32, 512, "px"))
+    max_retries: int = field(default=4, metadata=spec(0, 100, doc="retries per subtask"))
+    label: str = field(default="ground_truth", metadata=spec(choices=LABEL_SOURCES,
+                       doc="which verdict becomes the success label: the task predicate or the plan's checks"))
+    planner: str = field(default="offline", metadata=spec(choices=("offline", "llm")))
+    llm_url: str = ""
+    llm_model: str = ""
+    time_limit_factor: float = field(default=2.0, metadata=spec(0.5, 10.0,
+                                     doc="episode sim-time budget as a multiple of the task's max_seconds"))
+
+
+def _resume_point(plan, index: int, state) -> int:
+    """After a recovery released the gripper, a place must start again from its pick."""
+    sub = plan.subtasks[index]
+    if sub.primitive == "place" and not state.holding(sub.args["object"]):
+        for j in range(index - 1, -1, -1):
+            prev = plan.subtasks[j]
+            if prev.primitive == "pick" and prev.args["object"] == sub.args["object"]:
+                return j
+    return index
+
+
+def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), planner=None) -> EpisodeData:
+    """Generate the episode (task, seed); the same arguments always give the same episode."""
+    ep = build_episode(task, seed, cfg.dr, cfg.fidelity)
+    world = ep.world
+    scene = describe(ep.instance)
+    planner = planner or make_planner(cfg.planner, llm_url=cfg.llm_url or None, llm_model=cfg.llm_model or None)
+    plan = planner.plan(ep.instruction, scene).validate(scene)
+    prims = Primitives(world, ep.rngs.policy, variant=world.variant.name)
+    recorder = Recorder(ep, image_size=tuple(cfg.image_size))
+    state = StateView(world)
+    budget = ep.task.max_seconds * cfg.time_limit_factor
+    retries, attempts, completed = 0, [], 0
+    tries = [0] * len(plan.subtasks)
+    index = 0
+    try:
+        while index < len(plan.subtasks) and world.time <= budget:
+            sub = plan.subtasks[index]
+            recorder.subtask = index
+            ok, executed, reason = False, False, ""
+            try:
+                motion = getattr(prims, sub.primitive)(*[sub.args[name] for name in PRIMITIVES[sub.primitive]])
+                executed = True
+                execute(world, motion, observer=recorder)
+                ok = run_check(sub.check, state, scene)
+            except PrimitiveFailed as exc:
+                reason = f"primitive failed: {exc}"
+            except SandboxError as exc:
+                reason = f"check rejected: {exc}"
+            attempts.append({"subtask": index, "attempt": tries[index], "ok": ok, "executed": executed,
+                             "reason": reason, "t": round(world.time, 3)})
+            if ok:
+                index += 1
+                continue
+            retries += 1
+            tries[index] += 1
+            if tries[index] > cfg.max_retries:
+                break
+            if executed or tries[index] % 2 == 0:
+                # The world changed (or sampling keeps failing from here): recover — open, retreat, home — and
+                # retry with a fresh sample. Recovery steps keep the subtask's label, so the policy learns them.
+                try:
+                    execute(world, prims.recover(), observer=recorder)
+                except PrimitiveFailed as exc:
+                    attempts[-1]["reason"] += f"; recovery failed: {exc}"
+                index = _resume_point(plan, index, state)
+        completed = index
+        world.step(int(0.3 / world.timestep))  # let things come to rest before judging
+        ground_truth = ep.success()
+        check_ok = completed == len(plan.subtasks)
+        if check_ok and plan.task_check:
+            try:
+                check_ok = run_check(plan.task_check, state, scene)
+            except SandboxError:
+                check_ok = False
+        label = ground_truth if cfg.label == "ground_truth" else check_ok
+        meta = {
+            "task": task, "seed": int(seed), "instruction": ep.instruction,
+            "subtasks": [s.text for s in plan.subtasks], "success": bool(ground_truth),
+            "check_success": bool(check_ok), "label": {"value": bool(label), "source": cfg.label},
+            "retries": retries, "planner": plan.planner, "dr": ep.dr_record, "attempts": attempts,
+            "plan": plan.record(), "task_record": ep.instance.record(), "fidelity": cfg.fidelity,
+            "sim_seconds": round(world.time, 3),
+        }
+        return recorder.finish(meta)
+    finally:
+        recorder.close()

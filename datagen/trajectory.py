@@ -1,0 +1,96 @@
+"""Time-stamped joint trajectories and their execution on a World at the physics rate.
+
+The primitives return a `Motion` instead of moving the robot themselves, so that the caller decides when
+it runs, what observes it (recorder, renderer, success checks) and whether it runs at all. A `Segment` is
+one labelled piece with a single gripper command: "move to pre-grasp", "approach", "grasp", "lift"... The
+labels become the sub-trajectory boundaries of the recorded data; the gripper command is constant within a
+segment because the 2F-85 takes one target per move, as on the real robot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Segment:
+    """Joint targets `q` (N, 6) at `times` (N,) seconds from the segment's start, with one gripper command.
+
+    `times[0]` is 0 and `q[0]` is where the previous segment ended. Between samples the targets are
+    interpolated linearly; planners sample at the physics step, so interpolation only matters for
+    hand-written segments (e.g. a two-sample hold).
+    """
+
+    times: np.ndarray
+    q: np.ndarray
+    gripper: float
+    label: str
+
+    def __post_init__(self):
+        self.times = np.asarray(self.times, dtype=float).reshape(-1)
+        self.q = np.asarray(self.q, dtype=float).reshape(-1, 6)
+        if len(self.times) != len(self.q) or len(self.times) == 0:
+            raise ValueError(f"segment {self.label!r}: {len(self.times)} times for {len(self.q)} joint samples")
+        if np.any(np.diff(self.times) <= 0):
+            raise ValueError(f"segment {self.label!r}: times must increase strictly")
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+    def at(self, t) -> np.ndarray:
+        """Joint targets at time(s) t, clamped to the segment: (6,) for a scalar, (len(t), 6) for an array."""
+        t = np.asarray(t, dtype=float)
+        out = np.column_stack([np.interp(t.reshape(-1), self.times, self.q[:, j]) for j in range(6)])
+        return out[0] if t.ndim == 0 else out
+
+    @classmethod
+    def hold(cls, q, seconds: float, gripper: float, label: str) -> Segment:
+        """Keep the arm at q for `seconds` while the gripper goes to `gripper` (grasp, release)."""
+        q = np.asarray(q, dtype=float).reshape(6)
+        return cls(np.array([0.0, float(seconds)]), np.stack([q, q]), gripper, label)
+
+
+@dataclass
+class Motion:
+    """A sequence of segments, each starting where the previous one ended."""
+
+    segments: list[Segment] = field(default_factory=list)
+
+    @property
+    def duration(self) -> float:
+        return float(sum(s.duration for s in self.segments))
+
+    @property
+    def labels(self) -> list[str]:
+        return [s.label for s in self.segments]
+
+    @property
+    def final_q(self) -> np.ndarray:
+        return self.segments[-1].q[-1].copy()
+
+    def __add__(self, other: Motion) -> Motion:
+        return Motion(list(self.segments) + list(other.segments))
+
+    def append(self, seg: Segment) -> None:
+        self.segments.append(seg)
+
+
+def execute(world, motion: Motion, observer=None) -> None:
+    """Run `motion` on `world` at the physics rate: one joint target and one mj_step per 2 ms.
+
+    The gripper command is set at the start of each segment. `observer(world, label)` is called after
+    every physics step with the running segment's label (recorders subsample it to their own rate).
+    """
+    dt = world.timestep
+    for seg in motion.segments:
+        world.set_gripper(seg.gripper)
+        n = int(round(seg.duration / dt))
+        targets = seg.at(seg.times[0] + dt * np.arange(1, n + 1))
+        for q in targets:
+            world.set_arm_target(q)
+            world.step()
+            if observer is not None:
+                observer(world, seg.label)
