@@ -24,6 +24,7 @@ from sim.state import StateView
 
 log = logging.getLogger(__name__)
 LABEL_SOURCES = ("ground_truth", "check")
+SETTLE_S = 0.3
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     retries, attempts, completed = 0, [], 0
     tries = [0] * len(plan.subtasks)
     index = 0
+    recorder.subtask = 0
+    recorder.start()
     try:
         while index < len(plan.subtasks) and world.time <= budget:
             sub = plan.subtasks[index]
@@ -100,7 +103,9 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                     attempts[-1]["reason"] += f"; recovery failed: {exc}"
                 index = _resume_point(plan, index, state)
         completed = index
-        world.step(int(0.3 / world.timestep))  # let things come to rest before judging
+        for _ in range(int(round(SETTLE_S / world.timestep))):  # let things come to rest before judging
+            world.step()
+            recorder(world)
         ground_truth = ep.success()
         check_ok = completed == len(plan.subtasks)
         if check_ok and plan.task_check:

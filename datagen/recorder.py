@@ -57,8 +57,13 @@ class Recorder:
         self._subtasks.append(self.subtask)
         self._times.append(w.time)
 
+    def start(self) -> None:
+        """The first sample, at the episode's start, before any step."""
+        self.next_t = self.world.time + self.period
+        self.sample()
+
     def finish(self, meta: dict) -> EpisodeData:
-        self.sample()  # the final state, so the last action is the arm's resting target
+        """Samples so far as an episode; the last step's action is its own (resting) target."""
         self.close()
         targets = np.asarray(self._target, dtype=np.float32)
         action = np.concatenate([targets[1:], targets[-1:]], axis=0)

@@ -1,0 +1,81 @@
+"""The data-generation episode: plan, execute, verify, retry, record — and the `sudd datagen` command."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datagen.episode import DatagenConfig, run_episode
+from datagen.planner import OfflinePlanner
+from datagen.schema import ACTION_DIM, CONTROL_HZ, rot6d_to_matrix
+from runtime.cli import main
+
+FAST = DatagenConfig(dr="light", max_retries=2)
+
+
+def test_pick_place_episode_succeeds_and_records_everything():
+    data = run_episode("pick_place", 0, FAST)
+    data.validate()
+    meta = data.meta
+    assert meta["success"] and meta["check_success"] and meta["label"] == {"value": True, "source": "ground_truth"}
+    assert meta["subtasks"][0].startswith("pick up the ") and "bin" in meta["subtasks"][1]
+    assert set(np.unique(data.subtask)) <= {0, 1}
+    assert data.images["scene"].shape[1:] == (128, 128, 3) and data.images["wrist"].dtype == np.uint8
+    assert np.allclose(np.diff(data.time), 1.0 / CONTROL_HZ, atol=0.003)
+    # Actions are absolute end-effector targets with a valid 6-D rotation and a gripper command in [0, 1].
+    assert data.action.shape[1] == ACTION_DIM
+    R = rot6d_to_matrix(data.action[10, 3:9])
+    assert np.allclose(R.T @ R, np.eye(3), atol=1e-5)
+    assert set(np.round(data.action[:, 9], 3)) <= {0.0, 1.0} | set(np.round(np.linspace(0, 1, 11), 3))
+    assert data.action[:, 9].max() == 1.0, "the gripper closes during a pick"
+
+
+def test_same_task_and_seed_reproduce_the_episode():
+    a, b = run_episode("stack", 3, FAST), run_episode("stack", 3, FAST)
+    assert np.array_equal(a.action, b.action)
+    assert np.array_equal(a.images["wrist"], b.images["wrist"])
+
+
+class ImpossibleCheck(OfflinePlanner):
+    """The plan's check for the pick can never pass: the episode must retry, then fail honestly."""
+
+    def plan(self, instruction, scene):
+        plan = super().plan(instruction, scene)
+        first = replace(plan.subtasks[0], check="def check():\n    return False\n")
+        return replace(plan, subtasks=(first, *plan.subtasks[1:]))
+
+
+def test_failed_check_triggers_recovery_and_retries_then_a_failure_label():
+    data = run_episode("pick_place", 1, replace(FAST, max_retries=1), planner=ImpossibleCheck())
+    meta = data.meta
+    assert meta["retries"] == 2 and not meta["check_success"]
+    assert [a["subtask"] for a in meta["attempts"]] == [0, 0]
+    assert not meta["success"] and meta["label"]["value"] is False
+
+
+def test_label_source_is_stated_when_the_checks_are_the_label():
+    data = run_episode("drawer_open", 2, replace(FAST, label="check"))
+    assert data.meta["label"] == {"value": data.meta["check_success"], "source": "check"}
+
+
+def test_sudd_datagen_writes_resumes_and_reports(tmp_path, capsys):
+    out = tmp_path / "data"
+    args = ["datagen", "--task", "drawer_open", "--task", "drawer_close", "--episodes", "1", "--out", str(out),
+            "--dr", "light", "--json"]
+    assert main(args) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["episodes"] == 2 and first["errors"] == 0
+    assert main(args) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["episodes"] == 0 and again["skipped"] == 2, "a re-run resumes, nothing is duplicated"
+    assert main(["data", "info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["episodes"] == 2
+
+
+def test_unknown_task_in_datagen_lists_families(tmp_path, capsys):
+    assert main(["datagen", "--task", "juggle", "--episodes", "1", "--out", str(tmp_path)]) == 2
+    assert "pick_place" in capsys.readouterr().err
