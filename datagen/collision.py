@@ -105,7 +105,7 @@ class CollisionChecker:
         self.tcp_site = world.tcp_site
         self._held_body = -1  # body whose geoms carry the HELD bits now
         self._allow_cache: dict = {}
-        self._table = _gripper_table(world, self.gripper_adr)
+        self._table = gripper_table(world, self.gripper_adr)
         self.sync()
 
     # -- state -------------------------------------------------------------------------------------------
@@ -270,7 +270,7 @@ def _geom_label(m, g: int) -> str:
     return m.geom(g).name or f"{m.body(m.geom_bodyid[g]).name}#{g}"
 
 
-def _gripper_table(world, adr: np.ndarray) -> np.ndarray:
+def gripper_table(world, adr: np.ndarray) -> np.ndarray:
     """Gripper joint angles at a few openings, found once per variant by closing it with contacts off."""
     key = world.variant.name
     if key not in _GRIPPER_TABLE:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from datagen.collision import Held
+from datagen.collision import Held, gripper_table
 from sim.kinematics import UnreachableError
 from sim.robot import GRIPPER_PAD_GEOMS, GRIPPER_STROKE
 
@@ -130,10 +130,8 @@ def simulate_close(world, q, body: str, opening: float, touch_geoms=None, second
     """
     m = world.model
     d = copy.copy(world.data)
-    from datagen.collision import _gripper_table  # the same opening table the checker uses
-
     gadr = np.array([m.jnt_qposadr[j] for j in range(m.njnt) if m.joint(j).name.startswith("gripper/")])
-    table = _gripper_table(world, gadr)
+    table = gripper_table(world, gadr)
     d.qpos[world.arm_qpos_adr] = q
     d.qpos[gadr] = [np.interp(opening, np.linspace(0, 1, len(table)), col) for col in table.T]
     d.qvel[:] = 0.0
