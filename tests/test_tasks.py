@@ -74,3 +74,12 @@ def test_state_view_inside_and_on_top_use_geometry():
     assert state.on_top(target, "table") and not state.holding(target)
     lo, hi = state.aabb(target)
     assert np.all(hi > lo) and lo[2] > -1e-3
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_every_seed_gets_a_layout_under_heavy_dr(name):
+    from sim.seeding import episode_rngs
+
+    family = get_task(name)
+    for seed in range(300):
+        family.sample(episode_rngs(seed).layout, preset("heavy"))

@@ -154,13 +154,28 @@ def sample_slots(rng: np.random.Generator, dr: DRConfig, count: int, region=None
     nx = max(2, int((x1 - x0) / min_gap))
     ny = max(1, int((y1 - y0) / min_gap))
     grid = [(x0 + (i + 0.5) * (x1 - x0) / nx, y0 + (j + 0.5) * (y1 - y0) / ny) for i in range(nx) for j in range(ny)]
+    jitter = dr.objects.xy_jitter
+    for attempt in range(_LAYOUT_ATTEMPTS):
+        # Later attempts shrink the jitter: a crowded region still gets a layout, and the first attempt's
+        # draws (which most seeds use) never change.
+        out = _try_slots(rng, dr, grid, count, (x0, x1, y0, y1), min_gap, keep_out,
+                         jitter * (1.0 - attempt / _LAYOUT_ATTEMPTS))
+        if out is not None:
+            return out
+    raise RuntimeError(f"could not place {count} objects without overlap in region {region}; use fewer objects")
+
+
+_LAYOUT_ATTEMPTS = 20
+
+
+def _try_slots(rng, dr, grid, count, bounds, min_gap, keep_out, jitter) -> list[Placement] | None:
+    x0, x1, y0, y1 = bounds
     order = rng.permutation(len(grid))
     out: list[Placement] = []
     for k in order:
         if len(out) == count:
             break
         gx, gy = grid[k]
-        jitter = dr.objects.xy_jitter
         x = float(np.clip(gx + rng.uniform(-jitter, jitter), x0, x1))
         y = float(np.clip(gy + rng.uniform(-jitter, jitter), y0, y1))
         if any(np.hypot(x - p.x, y - p.y) < min_gap for p in out):
@@ -169,6 +184,4 @@ def sample_slots(rng: np.random.Generator, dr: DRConfig, count: int, region=None
             continue
         yaw = float(rng.uniform(-dr.objects.yaw_jitter, dr.objects.yaw_jitter))
         out.append(Placement(x, y, yaw))
-    if len(out) < count:
-        raise RuntimeError(f"could not place {count} objects without overlap in region {region}; use fewer objects")
-    return out
+    return out if len(out) == count else None
