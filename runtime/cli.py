@@ -13,6 +13,7 @@ BENCH_AREAS = {
     "sim": "sim.bench:run_sim_bench",
     "datagen": "datagen.bench:run_datagen_bench",
     "bus": "runtime.bench_bus:run_bus_bench",
+    "safety": "safety.bench:run_safety_bench",
 }
 
 

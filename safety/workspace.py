@@ -1,0 +1,218 @@
+"""Cartesian limits: the TCP box, the table plane under the finger points, and keep-out boxes.
+
+Two jobs:
+
+* Targets. `target_ok` tests a target pose against the region shrunk by `target_margin`; `project` moves a
+  TCP target onto that region keeping its orientation: clip into the box, lift until every finger point
+  clears the table, push out of keep-out boxes through the face on the side where the arm already is (so a
+  target sweeping through a box slides along its face instead of jumping to the far side). The caller maps
+  the result back to joints with IK seeded on the desired joints (same branch).
+
+* The output. `braking_ok` proves that the commanded arm can still stop without any point leaving the
+  region: the joints' travel until rest lies in a box [lo_i, hi_i] (from the stop policy's bound), and for
+  each constraint n.P <= b it bounds n.P over that whole joint box by a Taylor expansion with an exact
+  remainder bound: n.P(q) + sum_i max(g_i lo_i, g_i hi_i) + 1/2 sum_ij |d_i||d_j| R_max(i,j), where
+  g_i = n.(axis_i x (P - o_i)) and R_j bounds the point's distance from joint axis j (so |d2P/dq_i dq_j|
+  <= R_max(i,j)). Far from every boundary a cheaper Lipschitz test (sum_i R_i |d_i| <= slack) suffices.
+  A constraint already violated (the arm started outside the region) only admits motion whose first-order
+  effect leads back inside; the rigorous bound applies again once it is inside.
+"""
+
+from __future__ import annotations
+
+import math
+
+_INWARD = 1e-9  # m: projections aim this far inside, so round-off does not leave them on the wrong side
+
+
+class Workspace:
+    def __init__(self, limits, fk):
+        self.fk = fk
+        self.bmin = tuple(float(x) for x in limits.box_min)
+        self.bmax = tuple(float(x) for x in limits.box_max)
+        self.zt = float(limits.table_z + limits.finger_clearance)
+        self.margin = float(limits.target_margin)
+        self.keepout = tuple(tuple(float(x) for x in b) for b in limits.keepout)
+        self._grip = tuple(tuple(float(x) for x in p) for p in limits.gripper_points)
+        self.offsets = ((0.0, 0.0, 0.0),) + self._grip
+        reach = fk.axis_reach
+        self.reach = tuple(tuple(r + math.sqrt(sum(x * x for x in off)) for r in reach) for off in self.offsets)
+        self.reach_max = tuple(max(r[i] for r in self.reach) for i in range(len(reach)))
+
+    # ---- points and slacks ----------------------------------------------------------------------------
+    def points(self, p, R):
+        """World positions of the TCP (first) and the gripper points."""
+        px, py, pz = p
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = R
+        out = [p]
+        for x, y, z in self._grip:
+            out.append((px + r0 * x + r1 * y + r2 * z, py + r3 * x + r4 * y + r5 * z, pz + r6 * x + r7 * y + r8 * z))
+        return out
+
+    def constraints(self, pts, ref_pts=None):
+        """[(point index, axis, sign, bound)]: sign * P[axis] <= bound, for these points.
+
+        Keep-out boxes contribute, per point, the face it is most clearly outside of (in `ref_pts`, the
+        current output's points, when given), so the check follows the side the arm is on.
+        """
+        out = []
+        for axis in range(3):
+            out.append((0, axis, -1.0, -self.bmin[axis]))
+            out.append((0, axis, 1.0, self.bmax[axis]))
+        for k in range(len(pts)):
+            out.append((k, 2, -1.0, -self.zt))
+        for box in self.keepout:
+            for k, P in enumerate(pts):
+                ref = ref_pts[k] if ref_pts is not None else P
+                axis, sign, bound = _separating_face(box, ref)
+                out.append((k, axis, sign, bound))
+        return out
+
+    def min_slack(self, pts, margin: float = 0.0) -> float:
+        """Smallest distance inside the region over all constraints (negative: violated by that much)."""
+        x, y, z = pts[0]
+        b0, b1, b2 = self.bmin
+        B0, B1, B2 = self.bmax
+        s = x - b0
+        for d in (B0 - x, y - b1, B1 - y, z - b2, B2 - z):
+            if d < s:
+                s = d
+        zt = self.zt
+        for P in pts:
+            d = P[2] - zt
+            if d < s:
+                s = d
+        for box in self.keepout:
+            for P in pts:
+                d = _separation(box, P)
+                if d < s:
+                    s = d
+        return s - margin
+
+    def target_ok(self, pts, tol: float = 0.0) -> bool:
+        return self.min_slack(pts, self.margin) >= -tol
+
+    # ---- target projection ----------------------------------------------------------------------------
+    def project(self, p, R, ref_pts):
+        """TCP position moved onto the target region (orientation R kept), or None if none is found."""
+        m = self.margin + _INWARD
+        lo = [self.bmin[i] + m for i in range(3)]
+        hi = [self.bmax[i] - m for i in range(3)]
+        offs = [(R[6] * o[0] + R[7] * o[1] + R[8] * o[2]) for o in self.offsets]  # z of each point above TCP
+        rot = [(R[0] * o[0] + R[1] * o[1] + R[2] * o[2], R[3] * o[0] + R[4] * o[1] + R[5] * o[2], dz)
+               for o, dz in zip(self.offsets, offs)]
+        x = [p[0], p[1], p[2]]
+        for _ in range(4):
+            for i in range(3):
+                x[i] = lo[i] if x[i] < lo[i] else (hi[i] if x[i] > hi[i] else x[i])
+            zmin = self.zt + m - min(offs)
+            if x[2] < zmin:
+                x[2] = zmin
+            moved = False
+            for box in self.keepout:
+                b = (box[0] - m, box[1] - m, box[2] - m, box[3] + m, box[4] + m, box[5] + m)
+                worst = 0.0
+                face = None
+                for k, r in enumerate(rot):
+                    P = (x[0] + r[0], x[1] + r[1], x[2] + r[2])
+                    if _separation(b, P) < 0.0:
+                        ref = ref_pts[k] if ref_pts is not None else P
+                        axis, sign, bound = _separating_face(b, ref)
+                        if face is None:
+                            face = (axis, sign, bound)
+                        axis, sign, bound = face
+                        pen = sign * P[axis] - bound
+                        if pen > worst:
+                            worst = pen
+                if face is not None and worst > 0.0:
+                    axis, sign, _ = face
+                    x[axis] -= sign * (worst + 1e-9)
+                    moved = True
+            if not moved and self.target_ok(self.points(tuple(x), R), _INWARD):
+                return tuple(x)
+        return tuple(x) if self.target_ok(self.points(tuple(x), R), _INWARD) else None
+
+    # ---- braking check on the output ------------------------------------------------------------------
+    def braking_ok(self, frames, pts, cons, dlo, dhi, slack: float | None = None) -> bool:
+        """Every point stays inside while the joints travel anywhere in [q + dlo, q + dhi].
+
+        `frames` = FastKinematics.frames(q) (or a zero-arg callable giving it, evaluated only if needed),
+        `pts` the points at q, `cons` their constraints, `slack` their min_slack if known (fast path).
+        """
+        n = len(dlo)
+        e = [dhi[i] if dhi[i] > -dlo[i] else -dlo[i] for i in range(n)]
+        rm = self.reach_max
+        lip = 0.0
+        for i in range(n):
+            lip += rm[i] * e[i]
+        if slack is not None and lip <= slack:
+            return True  # Lipschitz: no point can move farther than lip
+        fr = None
+        for k, axis, sign, bound in cons:
+            slack_k = bound - sign * pts[k][axis]
+            if slack_k < 0.0:  # already outside (start-up): allow only motion that leads back in
+                if fr is None:
+                    fr = frames() if callable(frames) else frames
+                if self._outward(fr, pts[k], axis, sign, dlo, dhi) > 0.0:
+                    return False
+                continue
+            R = self.reach[k]
+            lip = 0.0
+            for i in range(n):
+                lip += R[i] * e[i]
+            if lip <= slack_k:
+                continue
+            if fr is None:
+                fr = frames() if callable(frames) else frames
+            _, _, axes, origins = fr
+            P = pts[k]
+            first = 0.0
+            second = 0.0
+            prefix = 0.0
+            a1, a2 = (axis + 1) % 3, (axis + 2) % 3
+            for i in range(n):
+                ax, o = axes[i], origins[i]
+                # component `axis` of ax x (P - o)
+                g = sign * (ax[a1] * (P[a2] - o[a2]) - ax[a2] * (P[a1] - o[a1]))
+                t_hi, t_lo = g * dhi[i], g * dlo[i]
+                first += t_hi if t_hi > t_lo else t_lo
+                ei = e[i]
+                second += R[i] * ei * (ei + 2.0 * prefix)
+                prefix += ei
+            if first + 0.5 * second > slack_k:
+                return False
+        return True
+
+
+    @staticmethod
+    def _outward(fr, P, axis, sign, dlo, dhi) -> float:
+        """First-order change of sign * P[axis] for the middle of the joint travel box."""
+        _, _, axes, origins = fr
+        a1, a2 = (axis + 1) % 3, (axis + 2) % 3
+        out = 0.0
+        for i in range(len(dlo)):
+            ax, o = axes[i], origins[i]
+            g = sign * (ax[a1] * (P[a2] - o[a2]) - ax[a2] * (P[a1] - o[a1]))
+            out += g * 0.5 * (dlo[i] + dhi[i])
+        return out
+
+
+def _separation(box, P) -> float:
+    """Signed distance-like separation of P from a box: > 0 outside (max over faces), < 0 inside."""
+    return max(box[0] - P[0], P[0] - box[3], box[1] - P[1], P[1] - box[4], box[2] - P[2], P[2] - box[5])
+
+
+def _separating_face(box, P):
+    """(axis, sign, bound) of the box face P is most outside of: sign * P[axis] <= bound keeps P out."""
+    best, face = -math.inf, None
+    for axis in range(3):
+        d = box[axis] - P[axis]  # outside the min face: P[axis] <= box_min
+        if d > best:
+            best, face = d, (axis, 1.0, box[axis])
+        d = P[axis] - box[axis + 3]  # outside the max face: -P[axis] <= -box_max
+        if d > best:
+            best, face = d, (axis, -1.0, -box[axis + 3])
+    return face
+
+
+__all__ = ["Workspace"]
