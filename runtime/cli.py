@@ -14,12 +14,14 @@ BENCH_AREAS = {
     "datagen": "datagen.bench:run_datagen_bench",
     "bus": "runtime.bench_bus:run_bus_bench",
     "safety": "safety.bench:run_safety_bench",
+    "policy": "policy.bench:run_policy_bench",
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
     from datagen import cli as data_cli
     from datagen import generate_cli
+    from policy import cli as policy_cli
     from sim import cli as sim_cli
 
     parser = argparse.ArgumentParser(
@@ -30,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim_cli.register(sub)
     generate_cli.register(sub)
     data_cli.register(sub)
+    policy_cli.register(sub)
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
                            description="Run a benchmark area and print its figures; --json prints one JSON object.",

@@ -1,0 +1,338 @@
+"""The runtime's policy: load a bundle directory, validate it completely, then act with onnxruntime.
+
+Imports only numpy, onnxruntime and tokenizers (never torch): the robot-side process stays small and fast
+to start. Layout and graph contracts are written by `policy.export` (see its docstring).
+
+    bundle = Bundle.load("bundles/pp")                      # BundleError names what is wrong, before any inference
+    emb = bundle.embed("put the red block in the bowl")      # (384,) unit vector; cached per string
+    best, cos = bundle.task_similarity("put the red block in the bowl")   # refuse a command far from training
+    chunk = bundle.act({"scene": s, "wrist": w}, proprio, emb, rng=rng)   # (Tp, 10) absolute targets
+    todo = chunk[bundle.execute]                             # the Ta actions to run now (rows To-1 .. To-1+Ta-1)
+
+Chunk row k is the target for control step (now - (To-1) + k) at `control_hz`: row To-1 is "now".
+Validation at load, each failure a BundleError with the reason: missing or altered files (size, sha256),
+format and version, opset (declared vs in each graph vs supported), manifest self-consistency (graph I/O
+must follow from horizons, dims, cameras), every graph's real input/output names, shapes and dtypes,
+normalization stats shapes and values, the tokenizer. Sessions use a fixed intra-op thread count (default 2)
+with spinning off by default: on a shared 2-core robot computer spinning threads starve the other nodes
+and, measured, make the policy itself slower whenever another process runs. Load ends with a warm-up.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+FORMAT = "sudd-policy-bundle"
+SUPPORTED_VERSIONS = (1,)
+SUPPORTED_OPSETS = range(13, 22)
+TEXT_DIM = 384
+STAT_KEYS = ("proprio_scale", "proprio_offset", "proprio_min", "proprio_max",
+             "action_scale", "action_offset", "action_min", "action_max")
+_DTYPES = {"tensor(float)": "float32", "tensor(uint8)": "uint8", "tensor(int64)": "int64"}
+
+
+class BundleError(RuntimeError):
+    """A policy bundle that must not be used; the message says which file or field and why."""
+
+
+def onnx_opsets(path: Path) -> dict[str, int]:
+    """opset_import of an ONNX file (domain -> version), read from the protobuf without the onnx package."""
+    buf = memoryview(path.read_bytes())
+
+    def varint(i: int) -> tuple[int, int]:
+        shift = value = 0
+        while True:
+            if i >= len(buf):
+                raise BundleError(f"{path.name}: truncated ONNX file")
+            b = buf[i]
+            value |= (b & 0x7F) << shift
+            i, shift = i + 1, shift + 7
+            if not b & 0x80:
+                return value, i
+
+    def fields(lo: int, hi: int):
+        i = lo
+        while i < hi:
+            tag, i = varint(i)
+            field, wire = tag >> 3, tag & 7
+            if wire == 0:
+                value, i = varint(i)
+                yield field, value
+            elif wire == 2:
+                n, i = varint(i)
+                yield field, (i, i + n)
+                i += n
+            elif wire in (1, 5):
+                i += 8 if wire == 1 else 4
+            else:
+                raise BundleError(f"{path.name}: not an ONNX model (protobuf wire type {wire})")
+        if i != hi:
+            raise BundleError(f"{path.name}: truncated ONNX file")
+
+    out = {}
+    for field, value in fields(0, len(buf)):
+        if field == 8:  # ModelProto.opset_import: OperatorSetIdProto {1: domain, 2: version}
+            domain, version = "", None
+            for f, v in fields(*value):
+                if f == 1:
+                    domain = bytes(buf[v[0]:v[1]]).decode()
+                elif f == 2:
+                    version = v
+            out[domain or "ai.onnx"] = version
+    return out
+
+
+def expected_graphs(m: dict) -> dict:
+    """The graph I/O that the manifest's own horizons, dims, cameras and image size imply."""
+    To, Tp = m["horizons"]["obs"], m["horizons"]["pred"]
+    Dp, Da, G = m["dims"]["proprio"], m["dims"]["action"], m["dims"]["cond"]
+    H, W = m["image_size"]
+    io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
+    return {
+        "obs_encoder": {"inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
+                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", TEXT_DIM], "float32")],
+                        "outputs": [io("cond", ["B", G], "float32")]},
+        "denoiser": {"inputs": [io("noisy_actions", ["B", Tp, Da], "float32"), io("timestep", ["B"], "int64"),
+                                io("cond", ["B", G], "float32")],
+                     "outputs": [io("noise_pred", ["B", Tp, Da], "float32")]},
+        "text_encoder": {"inputs": [io("input_ids", ["B", "L"], "int64"), io("attention_mask", ["B", "L"], "int64")],
+                         "outputs": [io("embedding", ["B", TEXT_DIM], "float32")]},
+    }
+
+
+def _need(ok: bool, msg: str) -> None:
+    if not ok:
+        raise BundleError(msg)
+
+
+def _check_manifest(m: dict) -> None:
+    _need(isinstance(m, dict) and m.get("format") == FORMAT, f"not a policy bundle (format={m.get('format')!r})")
+    _need(m.get("format_version") in SUPPORTED_VERSIONS, f"format_version {m.get('format_version')!r} is not "
+          f"supported by this loader ({list(SUPPORTED_VERSIONS)}); re-export with a matching sudd")
+    _need(m.get("opset") in SUPPORTED_OPSETS, f"opset {m.get('opset')!r} is outside the supported "
+          f"{SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1}")
+    for key in ("horizons", "dims", "cameras", "image_size", "graphs", "ddim", "stats", "tokenizer", "files"):
+        _need(key in m, f"manifest has no {key!r}")
+    h, d = m["horizons"], m["dims"]
+    ints = [h.get("obs"), h.get("pred"), h.get("action"), h.get("execute_from"), d.get("proprio"), d.get("action"),
+            d.get("cond"), *m["image_size"]]
+    _need(all(isinstance(v, int) and v >= 0 for v in ints), f"horizons/dims/image_size must be integers: {ints}")
+    _need(0 < h["action"] and h["execute_from"] + h["action"] <= h["pred"] and h["execute_from"] < h["obs"],
+          f"inconsistent horizons {h}")
+    _need(d.get("text") == TEXT_DIM and len(m["image_size"]) == 2 and m["cameras"], "bad text dim, image size or cameras")
+    s = m["ddim"]
+    ts, ab, abp = s.get("timesteps", []), s.get("alpha_bar", []), s.get("alpha_bar_prev", [])
+    _need(len(ts) > 0 and len(ts) == len(ab) == len(abp), "ddim schedule lists are empty or differ in length")
+    _need(all(0 < a <= 1 for a in ab + abp) and all(a > b for a, b in zip(ts, ts[1:])),
+          "ddim schedule: alphas must lie in (0, 1] and timesteps descend")
+    want = expected_graphs(m)
+    for name, spec in want.items():
+        got = m["graphs"].get(name, {})
+        _need(isinstance(got.get("file"), str), f"manifest graph {name!r} names no file")
+        for kind in ("inputs", "outputs"):
+            _need(got.get(kind) == spec[kind], f"manifest graph {name} {kind} {got.get(kind)} do not follow from "
+                  f"its horizons/dims/cameras (expected {spec[kind]})")
+
+
+def _check_files(root: Path, m: dict, verify_hashes: bool) -> None:
+    needed = [g["file"] for g in m["graphs"].values()] + [m["stats"]["file"], m["tokenizer"]["file"]]
+    for rel in needed:
+        _need(rel in m["files"], f"{rel} is not listed in the manifest's files")
+    for rel, meta in m["files"].items():
+        p = root / rel
+        _need(p.is_file(), f"missing file {rel}")
+        _need(p.stat().st_size == meta.get("bytes"), f"{rel}: {p.stat().st_size} bytes, manifest says {meta.get('bytes')}")
+        if verify_hashes:
+            h = hashlib.sha256()
+            with open(p, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+            _need(h.hexdigest() == meta.get("sha256"), f"{rel}: content differs from the manifest (sha256)")
+
+
+def _check_session(name: str, sess: ort.InferenceSession, spec: dict) -> None:
+    for kind, args in (("inputs", sess.get_inputs()), ("outputs", sess.get_outputs())):
+        got = [{"name": a.name, "shape": [s if isinstance(s, int) else (s or "?") for s in a.shape],
+                "dtype": _DTYPES.get(a.type, a.type)} for a in args]
+        _need(got == spec[kind], f"{name}.onnx {kind} are {got}, the manifest says {spec[kind]}")
+
+
+def _load_stats(path: Path, dp: int, da: int) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path) as z:
+            stats = {k: np.asarray(z[k], np.float32) for k in STAT_KEYS if k in z}
+    except Exception as exc:
+        raise BundleError(f"{path.name} is unreadable ({type(exc).__name__}: {exc})") from None
+    for k in STAT_KEYS:
+        _need(k in stats, f"{path.name} has no {k!r}")
+        n = dp if k.startswith("proprio") else da
+        _need(stats[k].shape == (n,), f"{path.name}: {k} has shape {stats[k].shape}, the manifest's dims need ({n},)")
+        _need(bool(np.all(np.isfinite(stats[k]))), f"{path.name}: {k} is not finite")
+    _need(bool(np.all(stats["proprio_scale"] != 0) and np.all(stats["action_scale"] != 0)),
+          f"{path.name}: a normalization scale is 0")
+    return stats
+
+
+class Bundle:
+    """A validated policy bundle with its onnxruntime sessions. Create with `Bundle.load`."""
+
+    def __init__(self, root: Path, manifest: dict, sessions: dict, tokenizer, stats: dict):
+        self.root, self.manifest, self.sessions, self.tokenizer, self.stats = root, manifest, sessions, tokenizer, stats
+        h, m = manifest["horizons"], manifest
+        self.cameras, self.image_size = list(m["cameras"]), tuple(m["image_size"])
+        self.obs_horizon, self.pred_horizon, self.action_horizon = h["obs"], h["pred"], h["action"]
+        self.proprio_dim, self.action_dim = m["dims"]["proprio"], m["dims"]["action"]
+        self.execute = slice(h["execute_from"], h["execute_from"] + h["action"])
+        self.instructions, self.tasks = list(m.get("instructions", [])), list(m.get("tasks", []))
+        rot = m.get("action_layout", {}).get("rot6d", [3, 9])
+        self._rot = slice(*rot)
+        s = m["ddim"]
+        self._schedule = list(zip(s["timesteps"], s["alpha_bar"], s["alpha_bar_prev"]))
+        self._clip = bool(m.get("diffusion", {}).get("clip_sample", True))
+        self._cache: dict[str, np.ndarray] = {}
+        self._refs = np.zeros((0, TEXT_DIM), np.float32)
+
+    @classmethod
+    def load(cls, path: str | Path, intra_op_num_threads: int = 2, allow_spinning: bool = False,
+             warmup: bool = True, verify_hashes: bool = True, providers: list[str] | None = None) -> "Bundle":
+        """Validate and open a bundle. providers: onnxruntime execution providers (default CPU only; e.g.
+        ["CUDAExecutionProvider", "CPUExecutionProvider"] for the `full` preset on a robot PC with a GPU)."""
+        root = Path(path)
+        _need(root.is_dir(), f"{root} is not a directory")
+        _need((root / "manifest.json").is_file(), f"missing file manifest.json in {root}")
+        try:
+            m = json.loads((root / "manifest.json").read_text())
+        except (OSError, ValueError) as exc:
+            raise BundleError(f"manifest.json is unreadable: {exc}") from None
+        try:
+            _check_manifest(m)
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise BundleError(f"manifest.json is malformed ({type(exc).__name__}: {exc})") from None
+        _check_files(root, m, verify_hashes)
+        so = ort.SessionOptions()
+        so.intra_op_num_threads, so.inter_op_num_threads = intra_op_num_threads, 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        so.add_session_config_entry("session.intra_op.allow_spinning", "1" if allow_spinning else "0")
+        sessions = {}
+        for name, spec in m["graphs"].items():
+            p = root / spec["file"]
+            version = onnx_opsets(p).get("ai.onnx")
+            _need(version == m["opset"], f"{spec['file']} uses opset {version}, the manifest declares {m['opset']}")
+            try:
+                sessions[name] = ort.InferenceSession(str(p), so, providers=providers or ["CPUExecutionProvider"])
+            except Exception as exc:
+                raise BundleError(f"{spec['file']}: onnxruntime refuses it ({type(exc).__name__}: {exc})") from None
+            _check_session(name, sessions[name], spec)
+        stats = _load_stats(root / m["stats"]["file"], m["dims"]["proprio"], m["dims"]["action"])
+        try:
+            from tokenizers import Tokenizer
+
+            tok = Tokenizer.from_file(str(root / m["tokenizer"]["file"]))
+        except Exception as exc:
+            raise BundleError(f"{m['tokenizer']['file']}: not a tokenizer ({type(exc).__name__}: {exc})") from None
+        tok.enable_truncation(int(m["tokenizer"].get("max_length", 256)))
+        tok.no_padding()
+        bundle = cls(root, m, sessions, tok, stats)
+        if warmup:
+            bundle.warmup()
+        return bundle
+
+    def warmup(self) -> None:
+        """First runs allocate and tune; do them now, and embed the known instructions for task_similarity."""
+        H, W = self.image_size
+        imgs = {c: np.zeros((self.obs_horizon, H, W, 3), np.uint8) for c in self.cameras}
+        for _ in range(2):
+            self.act(imgs, np.zeros((self.obs_horizon, self.proprio_dim), np.float32), self.embed("warm up"),
+                     noise=np.zeros((self.pred_horizon, self.action_dim), np.float32))
+        self._reference_embeddings()
+
+    def _reference_embeddings(self) -> np.ndarray:
+        if len(self._refs) != len(self.instructions):
+            self._refs = np.stack([self.embed(t) for t in self.instructions]) if self.instructions else self._refs
+        return self._refs
+
+    def embed(self, text: str) -> np.ndarray:
+        """(384,) float32 unit vector of `text` (MiniLM, int8 weights), cached per string."""
+        if text not in self._cache:
+            enc = self.tokenizer.encode(text)
+            ids = np.array([enc.ids], np.int64)
+            out = self.sessions["text_encoder"].run(None, {"input_ids": ids, "attention_mask": np.ones_like(ids)})[0][0]
+            self._cache[text] = (out / max(float(np.linalg.norm(out)), 1e-12)).astype(np.float32)
+        return self._cache[text]
+
+    def task_similarity(self, text: str | np.ndarray) -> tuple[str | None, float]:
+        """(closest trained instruction, cosine); (None, 0.0) for a bundle that records no instructions."""
+        refs = self._reference_embeddings()
+        if not len(refs):
+            return None, 0.0
+        e = self.embed(text) if isinstance(text, str) else np.asarray(text, np.float32)
+        cos = refs @ (e / max(float(np.linalg.norm(e)), 1e-12))
+        k = int(np.argmax(cos))
+        return self.instructions[k], float(cos[k])
+
+    def act(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
+            noise: np.ndarray | None = None, rng: np.random.Generator | None = None, trace: list | None = None
+            ) -> np.ndarray:
+        """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
+
+        images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
+        (384,); noise: the initial (Tp, Da) N(0, I) sample (else drawn from `rng`). `trace`, if a list,
+        receives cond then (x_t, t, predicted noise) per step (for parity checks).
+        """
+        To, (H, W) = self.obs_horizon, self.image_size
+        feeds = {}
+        for c in self.cameras:
+            x = images.get(c) if isinstance(images, dict) else None
+            if not isinstance(x, np.ndarray) or x.dtype != np.uint8 or x.shape != (To, H, W, 3):
+                got = None if x is None else (getattr(x, "shape", None), getattr(x, "dtype", None))
+                raise ValueError(f"image {c!r}: expected ({To}, {H}, {W}, 3) uint8, got {got}")
+            feeds[f"image_{c}"] = np.ascontiguousarray(x[None])
+        p = np.asarray(proprio, np.float32)
+        if p.shape != (To, self.proprio_dim) or not np.all(np.isfinite(p)):
+            raise ValueError(f"proprio: expected finite ({To}, {self.proprio_dim}), got {p.shape}")
+        e = np.asarray(text_embedding, np.float32).reshape(-1)
+        if e.shape != (TEXT_DIM,) or not np.all(np.isfinite(e)):
+            raise ValueError(f"text_embedding: expected finite ({TEXT_DIM},), got {e.shape}")
+        feeds["proprio"] = (p * self.stats["proprio_scale"] + self.stats["proprio_offset"])[None].astype(np.float32)
+        feeds["text_embedding"] = e[None]
+        cond = self.sessions["obs_encoder"].run(None, feeds)[0]
+        if noise is None:
+            noise = (rng or np.random.default_rng()).standard_normal((self.pred_horizon, self.action_dim))
+        x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
+        if trace is not None:
+            trace.append(cond)
+        den = self.sessions["denoiser"]
+        for t, ab, ab_prev in self._schedule:
+            eps = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
+            if trace is not None:
+                trace.append((x, t, eps))
+            x0 = (x - math.sqrt(1.0 - ab) * eps) / math.sqrt(ab)  # DDIM, eta = 0 (policy.schedule.ddim_step)
+            if self._clip:
+                x0 = x0.clip(-1.0, 1.0)
+            x = (math.sqrt(ab_prev) * x0 + math.sqrt(1.0 - ab_prev) * eps).astype(np.float32)
+        a = (x[0] - self.stats["action_offset"]) / self.stats["action_scale"]
+        return _orthonormalize(a.astype(np.float32), self._rot)
+
+    def info(self) -> dict:
+        m = self.manifest
+        return {"path": str(self.root), "format_version": m["format_version"], "opset": m["opset"],
+                "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
+                "instructions": len(self.instructions), "data_hash": m.get("data", {}).get("content_hash"),
+                "params": m.get("params"), "bytes": {k: v["bytes"] for k, v in m["files"].items()}}
+
+
+def _orthonormalize(a: np.ndarray, rot: slice) -> np.ndarray:
+    """Gram-Schmidt on each row's rot6d columns (same as policy.sampling.orthonormalize_rot6d)."""
+    c1, c2 = a[:, rot.start:rot.start + 3], a[:, rot.start + 3:rot.stop]
+    x = c1 / np.maximum(np.linalg.norm(c1, axis=-1, keepdims=True), 1e-8)
+    c2 = c2 - x * (x * c2).sum(-1, keepdims=True)
+    y = c2 / np.maximum(np.linalg.norm(c2, axis=-1, keepdims=True), 1e-8)
+    a[:, rot] = np.concatenate([x, y], axis=-1)
+    return a

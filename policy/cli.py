@@ -1,0 +1,98 @@
+"""`sudd train` and `sudd export`: distill episodes into a diffusion policy, then into an ONNX bundle.
+
+Register with `policy.cli.register(subparsers)` (runtime/cli.py); the bench is `policy.bench:run_policy_bench`.
+torch is imported only when a command runs, so `sudd --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    tr = sub.add_parser(
+        "train", help="train a language-conditioned diffusion policy on an episode dataset (resumable)",
+        description="Train (or resume) a diffusion policy. Checkpoints, metrics.jsonl and metrics.png go to --out;\n"
+                    "re-running the same command continues from the last checkpoint.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n  sudd train out/data --out runs/pp --steps 2000\n"
+               "  sudd train out/data --out runs/pp --config full --epochs 100 --device cuda\n"
+               "  sudd train out/data --out runs/pp --steps 2000 --nproc 2          # DDP (gloo on CPU)\n"
+               "  sudd train out/data --out runs/pp --steps 500 --set batch_size=32 --set include_failures=true")
+    tr.add_argument("data", type=Path, help="episode dataset directory (sudd datagen --out)")
+    tr.add_argument("--out", type=Path, required=True, help="run directory")
+    tr.add_argument("--config", default="small", help="preset small|full or a TOML file (default small)")
+    length = tr.add_mutually_exclusive_group(required=True)
+    length.add_argument("--steps", type=int, help="optimizer steps in the schedule")
+    length.add_argument("--epochs", type=int, help="passes over the samples")
+    tr.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
+    tr.add_argument("--fresh", action="store_true", help="start over instead of resuming")
+    tr.add_argument("--device", default="auto", help="auto|cpu|cuda|cuda:N (default auto)")
+    tr.add_argument("--nproc", type=int, default=1, help="processes for DistributedDataParallel (torchrun)")
+    tr.add_argument("--json", action="store_true", help="print the summary as JSON")
+    tr.set_defaults(func=_train)
+
+    ex = sub.add_parser(
+        "export", help="export a training run to a policy bundle (ONNX + manifest), verified against torch",
+        description="Write a self-contained bundle directory (see policy/export.py) from a run's latest\n"
+                    "checkpoint (EMA weights), check it against torch, and publish it atomically.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example:\n  sudd export runs/pp --out bundles/pp")
+    ex.add_argument("run", type=Path, help="run directory (sudd train --out)")
+    ex.add_argument("--out", type=Path, required=True, help="bundle directory (replaced if it is a bundle)")
+    ex.add_argument("--checkpoint", type=Path, default=None, help="a specific checkpoint file")
+    ex.add_argument("--no-ema", action="store_true", help="export the raw instead of the EMA weights")
+    ex.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    ex.set_defaults(func=_export)
+
+
+def parse_overrides(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set {item!r}: expected FIELD=VALUE")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value  # a bare string
+    return out
+
+
+def _train(args) -> int:
+    if args.nproc > 1:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.nproc}",
+               "-m", "policy.train", str(args.data), str(args.out), "--config", str(args.config),
+               "--device", args.device]
+        cmd += ["--steps", str(args.steps)] if args.steps else ["--epochs", str(args.epochs)]
+        cmd += [a for s in args.set for a in ("--set", s)] + (["--fresh"] if args.fresh else [])
+        return subprocess.call(cmd, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    from policy.train import train
+
+    summary = train(args.data, args.config, args.out, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
+                    device=args.device, overrides=parse_overrides(args.set))
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"run {summary['run_dir']}: step {summary['step']}/{summary['total_steps']}, "
+              f"loss {summary['final_loss']:.4f}, checkpoint {summary.get('checkpoint')}, plot {summary['plot']}")
+    return 0
+
+
+def _export(args) -> int:
+    from policy.export import export
+
+    manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema)
+    if args.json:
+        print(json.dumps(manifest, indent=2))
+    else:
+        size = sum(f["bytes"] for f in manifest["files"].values())
+        p = manifest["parity"]
+        print(f"bundle {args.out}: {size / 1e6:.1f} MB, {len(manifest['instructions'])} instructions, parity "
+              f"step {p['step_max_abs_err']:.1e} chunk {p['chunk_max_abs_err']:.1e}")
+    return 0

@@ -1,0 +1,161 @@
+"""Policy and training configuration: one frozen dataclass, presets `small` and `full`, TOML overrides.
+
+The recipe is Diffusion Policy (Chi et al., RSS 2023), CNN variant: observation horizon To=2, prediction
+horizon Tp=16, execution horizon Ta=8; DDPM with 100 training steps, squaredcos_cap_v2 betas, epsilon
+prediction; DDIM at inference; a 1-D conditional UNet with FiLM; a from-scratch ResNet per camera with
+GroupNorm (BatchNorm statistics do not survive EMA averaging) and a spatial-softmax head; AdamW 1e-4 with
+cosine decay after a linear warm-up; EMA of the weights.
+
+- `small` trains on a 2-core CPU in minutes and runs a chunk (obs encoding + 8 DDIM steps) in ~15-25 ms
+  with onnxruntime: 96x96 random crops of the 128x128 images, one residual block per stage at widths
+  16-32-64-128 (both cameras: 0.67 M parameters), UNet down_dims (64, 128, 256) with temporal kernel 3
+  and a 64-D step embedding (4.3 M); 4.9 M in all. On a CPU the denoiser is bound by per-op overhead, so
+  its kernel and widths were chosen for parameter count, not speed. The encoder's widths are what cost
+  time: 32-64-128-256 (2.5 M) measured ~3x the encoder latency; set it in a TOML file when data warrants.
+- `full` is the paper's size for a GPU: ResNet-18 widths and depth (64-128-256-512, two blocks per stage),
+  down_dims (256, 512, 1024), 112x112 crops.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from datagen.schema import ACTION_DIM, CAMERAS, IMAGE_SIZE, PROPRIO_DIM
+from sim.config import ConfigError, as_dict, load_config, spec
+
+PRESETS = ("small", "full")
+TEXT_DIM = 384  # all-MiniLM-L6-v2
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Everything that defines a policy and how it is trained; recorded in every run and bundle."""
+
+    preset: str = field(default="small", metadata=spec(choices=PRESETS))
+    # horizons (steps at datagen.schema.CONTROL_HZ)
+    obs_horizon: int = field(default=2, metadata=spec(1, 16, doc="To: observation steps fed to the policy"))
+    pred_horizon: int = field(default=16, metadata=spec(4, 64, doc="Tp: predicted actions; multiple of 4"))
+    action_horizon: int = field(default=8, metadata=spec(1, 64, doc="Ta: actions executed per chunk"))
+    # observations
+    cameras: tuple[str, ...] = field(default=CAMERAS, metadata=spec(choices=CAMERAS))
+    image_size: tuple[int, int] = field(default=IMAGE_SIZE, metadata=spec(16, 1024, "px", doc="dataset H, W"))
+    crop_size: tuple[int, int] = field(default=(96, 96), metadata=spec(8, 1024, "px",
+                                       doc="random crop (train) / centre crop (inference) H, W"))
+    proprio_dim: int = field(default=PROPRIO_DIM, metadata=spec(1, 256))
+    action_dim: int = field(default=ACTION_DIM, metadata=spec(1, 256))
+    # image encoder
+    encoder_widths: tuple[int, ...] = field(default=(16, 32, 64, 128), metadata=spec(4, 1024))
+    encoder_blocks: tuple[int, ...] = field(default=(1, 1, 1, 1), metadata=spec(1, 8))
+    keypoints: int = field(default=32, metadata=spec(1, 512, doc="spatial-softmax keypoints per camera"))
+    image_feature_dim: int = field(default=64, metadata=spec(1, 2048))
+    proprio_feature_dim: int = field(default=64, metadata=spec(1, 2048))
+    text_feature_dim: int = field(default=64, metadata=spec(1, 2048))
+    # denoiser
+    down_dims: tuple[int, ...] = field(default=(64, 128, 256), metadata=spec(4, 4096))
+    kernel_size: int = field(default=3, metadata=spec(1, 15, doc="temporal conv kernel (the paper: 5)"))
+    step_embed_dim: int = field(default=64, metadata=spec(8, 1024))
+    group_norm_groups: int = field(default=8, metadata=spec(1, 64, doc="UNet; the image encoder uses width/16"))
+    # diffusion
+    num_train_timesteps: int = field(default=100, metadata=spec(2, 1000))
+    beta_schedule: str = field(default="squaredcos_cap_v2", metadata=spec(choices=("squaredcos_cap_v2", "linear")))
+    inference_steps: int = field(default=8, metadata=spec(1, 1000, doc="DDIM steps"))
+    clip_sample: bool = True
+    # data
+    include_failures: bool = False
+    subtask_language_prob: float = field(default=0.0, metadata=spec(0.0, 1.0,
+                                         doc="share of samples conditioned on the running subtask's label"))
+    color_jitter: float = field(default=0.2, metadata=spec(0.0, 1.0, doc="brightness/contrast/saturation +-"))
+    # optimisation
+    batch_size: int = field(default=64, metadata=spec(1, 4096, doc="per process"))
+    lr: float = field(default=1e-4, metadata=spec(0.0, 1.0))
+    weight_decay: float = field(default=1e-6, metadata=spec(0.0, 1.0))
+    betas: tuple[float, float] = field(default=(0.95, 0.999), metadata=spec(0.0, 1.0))
+    warmup_steps: int = field(default=500, metadata=spec(0, 10**7))
+    grad_clip: float = field(default=1.0, metadata=spec(0.0, 1e6, doc="max grad norm; 0 = off"))
+    ema_power: float = field(default=0.75, metadata=spec(0.0, 1.0))
+    ema_max_decay: float = field(default=0.9999, metadata=spec(0.0, 1.0))
+    amp: bool = False  # bf16 autocast on CUDA
+    num_workers: int = field(default=0, metadata=spec(0, 64, doc="DataLoader workers (0 on small machines)"))
+    checkpoint_every: int = field(default=1000, metadata=spec(1, 10**8))
+    keep_checkpoints: int = field(default=3, metadata=spec(1, 1000))
+    log_every: int = field(default=10, metadata=spec(1, 10**6))
+    seed: int = field(default=0, metadata=spec(0, 2**31 - 1))
+
+    def validate(self) -> None:
+        if self.action_horizon > self.pred_horizon - self.obs_horizon + 1:
+            raise ConfigError(f"action_horizon {self.action_horizon} must be <= pred_horizon - obs_horizon + 1 "
+                              f"= {self.pred_horizon - self.obs_horizon + 1} (executed actions start at To-1)")
+        down = 2 ** (len(self.down_dims) - 1)
+        if self.pred_horizon % down:
+            raise ConfigError(f"pred_horizon {self.pred_horizon} must be divisible by {down} "
+                              f"(the UNet halves it {len(self.down_dims) - 1} times)")
+        if len(self.encoder_blocks) != len(self.encoder_widths):
+            raise ConfigError("encoder_blocks needs one entry per encoder_widths stage")
+        if any(c > s for c, s in zip(self.crop_size, self.image_size)):
+            raise ConfigError(f"crop_size {self.crop_size} exceeds image_size {self.image_size}")
+        if len(set(self.cameras)) != len(self.cameras) or not self.cameras:
+            raise ConfigError(f"cameras {self.cameras} must be distinct and non-empty")
+        if self.inference_steps > self.num_train_timesteps:
+            raise ConfigError("inference_steps cannot exceed num_train_timesteps")
+        for w in self.down_dims:
+            if w % self.group_norm_groups:
+                raise ConfigError(f"down_dims entry {w} is not divisible by group_norm_groups {self.group_norm_groups}")
+
+    @property
+    def global_cond_dim(self) -> int:
+        """Per observation step: every camera's features + proprio features; the text feature once."""
+        per_step = len(self.cameras) * self.image_feature_dim + self.proprio_feature_dim
+        return self.obs_horizon * per_step + self.text_feature_dim
+
+    def to_dict(self) -> dict:
+        return as_dict(self)
+
+
+_SMALL = PolicyConfig()
+_FULL = replace(_SMALL, preset="full", crop_size=(112, 112), encoder_widths=(64, 128, 256, 512),
+                encoder_blocks=(2, 2, 2, 2), image_feature_dim=128, proprio_feature_dim=64, text_feature_dim=128,
+                down_dims=(256, 512, 1024), kernel_size=5, step_embed_dim=256, batch_size=64, num_workers=4, amp=True,
+                checkpoint_every=5000)
+
+
+def preset(name: str) -> PolicyConfig:
+    try:
+        return {"small": _SMALL, "full": _FULL}[name]
+    except KeyError:
+        raise ConfigError(f"unknown policy preset {name!r}; expected one of {list(PRESETS)}") from None
+
+
+def load_policy_config(spec_: str | Path | PolicyConfig | dict | None = None, overrides: dict | None = None
+                       ) -> PolicyConfig:
+    """A preset name, a TOML file (its optional `preset` key names the base), a dict, or a config."""
+    if isinstance(spec_, PolicyConfig):
+        base, data = spec_, {}
+    elif spec_ is None or str(spec_) in PRESETS:
+        base, data = preset(str(spec_ or "small")), {}
+    elif isinstance(spec_, dict):
+        data = dict(spec_)
+        base = preset(data.get("preset", "small"))
+    else:
+        path = Path(spec_)
+        if path.suffix != ".toml":
+            raise ConfigError(f"policy config {spec_!r}: expected a preset {list(PRESETS)} or a .toml file")
+        if not path.is_file():
+            raise ConfigError(f"policy config file {path} does not exist")
+        import tomllib
+
+        data = tomllib.loads(path.read_text())
+        base = preset(data.get("preset", "small"))
+        return load_config(PolicyConfig, _merge(data, overrides), where=str(path), base=base)
+    return load_config(PolicyConfig, _merge(data, overrides), base=base)
+
+
+def _merge(data: dict, overrides: dict | None) -> dict:
+    out = dict(data)
+    out.update(overrides or {})
+    return out
+
+
+def config_from_dict(d: dict) -> PolicyConfig:
+    """Rebuild a recorded config exactly (an unknown key is an error: the run was made by other code)."""
+    return load_config(PolicyConfig, d)

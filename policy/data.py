@@ -1,0 +1,178 @@
+"""Training samples from an episode dataset: (To observation steps, Tp action steps, the instruction).
+
+Windows follow Diffusion Policy's sequence sampler. A sample is a start step s; observations are steps
+s .. s+To-1 (the last one is "now"), actions s .. s+Tp-1, of which the runtime executes To-1 .. To-1+Ta-1.
+Indices outside the episode are clamped: the first step repeats before the start (the robot "was" there),
+the last step repeats after the end (the robot holds still once done). s ranges over
+[-(To-1), T-Tp+Ta-1], so a window pads at most To-1 steps before and Ta-1 steps after the episode: every
+chunk the runtime executes ends inside or right after real data.
+
+Episodes: verified successes only by default (the label the data generator chose: meta["label"]["value"],
+or the synthetic episodes' meta["label"]["success"], else meta["success"]); `include_failures` keeps all.
+
+Language: the root instruction; with `subtask_language_prob` > 0 a sample is instead conditioned on the
+label of the subtask running at "now" (not while recovering). Each distinct string is embedded ONCE with the
+frozen MiniLM encoder; samples carry a row of that table.
+
+Speed on 2 cores: low-dimensional arrays are always held in memory, already normalized; images too when
+the dataset fits `max_cache_bytes` (decoding zarr chunks per sample would dominate a CPU training step),
+else each sample reads only the chunks its window touches. Augmentation (train only): one random crop per
+camera and window (the same crop for all To frames, so motion between frames stays real) and colour
+jitter (brightness, contrast, saturation); evaluation uses the centre crop, exactly as the exported graph.
+Randomness comes from a per-sample seed (`dataset[(index, seed)]`), so training can replay any step exactly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from datagen.store import Dataset as EpisodeStore
+from policy.config import PolicyConfig
+from policy.normalize import Normalizer
+
+
+def episode_success(meta: dict) -> bool:
+    """The training label of an episode (see module docstring for the precedence)."""
+    label = meta.get("label")
+    if isinstance(label, dict):
+        for key in ("value", "success"):
+            if label.get(key) is not None:
+                return bool(label[key])
+    return bool(meta.get("success"))
+
+
+def crop(frames: np.ndarray, size: tuple[int, int], top: int | None = None, left: int | None = None) -> np.ndarray:
+    """(..., H, W, C) -> (..., h, w, C); centre crop unless the corner is given."""
+    H, W = frames.shape[-3:-1]
+    h, w = size
+    top = (H - h) // 2 if top is None else top
+    left = (W - w) // 2 if left is None else left
+    return frames[..., top:top + h, left:left + w, :]
+
+
+def color_jitter(x: torch.Tensor, rng: np.random.Generator, strength: float) -> torch.Tensor:
+    """(To, 3, h, w) float in [0, 1] -> same, with one random brightness/contrast/saturation for all frames."""
+    if strength <= 0:
+        return x
+    b, c, s = rng.uniform(1 - strength, 1 + strength, size=3)
+    x = x * float(b)
+    mean = x.mean(dim=(-3, -2, -1), keepdim=True)
+    x = (x - mean) * float(c) + mean
+    gray = (0.299 * x[:, 0:1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:3])
+    x = (x - gray) * float(s) + gray
+    return x.clamp(0.0, 1.0)
+
+
+class PolicyDataset(torch.utils.data.Dataset):
+    """Map-style dataset of policy samples; item = index or (index, seed). See the module docstring.
+
+    A sample: {"images": {camera: (To, 3, h, w) float32 in [0, 1]}, "proprio": (To, Dp) normalized,
+    "action": (Tp, Da) normalized, "text": (384,) unit vector}.
+    """
+
+    def __init__(self, data: str | Path | EpisodeStore, cfg: PolicyConfig, train: bool = True,
+                 normalizer: Normalizer | None = None, embedder: Callable[[list[str]], np.ndarray] | None = None,
+                 include_failures: bool | None = None, max_cache_bytes: float = 2e9):
+        self.store = data if isinstance(data, EpisodeStore) else EpisodeStore(data)
+        self.cfg, self.train = cfg, train
+        include = self.include_failures = cfg.include_failures if include_failures is None else include_failures
+        rows = self.store.episodes()
+        self.episodes = [r["index"] for r in rows if include or episode_success(self.store.meta(r["index"]))]
+        if not self.episodes:
+            raise ValueError(f"{self.store.root}: none of its {len(rows)} episodes is a verified success "
+                             f"(pass include_failures=True to train on all)")
+        low = [self.store.window(i, fields=("proprio", "action", "subtask")) for i in self.episodes]
+        for i, arrays in zip(self.episodes, low):
+            if arrays["proprio"].shape[1] != cfg.proprio_dim or arrays["action"].shape[1] != cfg.action_dim:
+                raise ValueError(f"episode {i}: proprio/action dims {arrays['proprio'].shape[1]}/"
+                                 f"{arrays['action'].shape[1]} != config {cfg.proprio_dim}/{cfg.action_dim}")
+        self.normalizer = normalizer or Normalizer.fit(np.concatenate([a["proprio"] for a in low]),
+                                                       np.concatenate([a["action"] for a in low]))
+        self.proprio = [self.normalizer.normalize_proprio(a["proprio"]) for a in low]
+        self.action = [self.normalizer.normalize_action(a["action"]) for a in low]
+        self.subtask = [a["subtask"].astype(np.int64) for a in low]
+        self.lengths = [len(a["action"]) for a in low]
+        self._language(embedder)
+        To, Tp, Ta = cfg.obs_horizon, cfg.pred_horizon, cfg.action_horizon
+        self.index = [(k, s) for k, T in enumerate(self.lengths)
+                      for s in range(-(To - 1), max(-(To - 1), T - Tp + Ta - 1) + 1)]
+        H, W = cfg.image_size
+        nbytes = sum(self.lengths) * len(cfg.cameras) * H * W * 3
+        self.images = None
+        if nbytes <= max_cache_bytes:
+            self.images = [{c: self._read(i, c, 0, None) for c in cfg.cameras} for i in self.episodes]
+
+    def _language(self, embedder) -> None:
+        """Embed every distinct instruction (and subtask label, if used) once."""
+        metas = [self.store.meta(i) for i in self.episodes]
+        self.instructions = [m["instruction"] for m in metas]
+        self.subtask_labels = [list(m.get("subtasks") or []) for m in metas]
+        texts = sorted(set(self.instructions) | ({t for labels in self.subtask_labels for t in labels}
+                                                  if self.cfg.subtask_language_prob > 0 else set()))
+        if embedder is None:
+            from policy.text import default_embedder
+
+            embedder = default_embedder()
+        table = np.asarray(embedder(texts), np.float32)
+        if table.shape != (len(texts), 384):
+            raise ValueError(f"embedder returned {table.shape}, expected ({len(texts)}, 384)")
+        self.text_row = {t: k for k, t in enumerate(texts)}
+        self.text_table = torch.from_numpy(table)
+
+    def _read(self, i: int, camera: str, start: int, stop: int | None) -> np.ndarray:
+        frames = self.store.window(i, start, stop, fields=(f"{camera}_rgb",))[f"{camera}_rgb"]
+        if frames.shape[1:3] != tuple(self.cfg.image_size):
+            raise ValueError(f"episode {i} camera {camera}: images are {frames.shape[1:3]}, the config expects "
+                             f"{tuple(self.cfg.image_size)}")
+        return frames
+
+    def _frames(self, k: int, camera: str, idx: np.ndarray) -> np.ndarray:
+        if self.images is not None:
+            return self.images[k][camera][idx]
+        lo, hi = int(idx.min()), int(idx.max()) + 1
+        return self._read(self.episodes[k], camera, lo, hi)[idx - lo]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, item) -> dict:
+        index, seed = item if isinstance(item, tuple) else (item, None)
+        rng = np.random.default_rng(seed)
+        k, s = self.index[index]
+        cfg, T = self.cfg, self.lengths[k]
+        obs = np.clip(np.arange(s, s + cfg.obs_horizon), 0, T - 1)
+        act = np.clip(np.arange(s, s + cfg.pred_horizon), 0, T - 1)
+        images = {}
+        for camera in cfg.cameras:
+            frames = self._frames(k, camera, obs)
+            if self.train:
+                H, W = frames.shape[1:3]
+                top, left = int(rng.integers(0, H - cfg.crop_size[0] + 1)), int(rng.integers(0, W - cfg.crop_size[1] + 1))
+                frames = crop(frames, cfg.crop_size, top, left)
+            else:
+                frames = crop(frames, cfg.crop_size)
+            # contiguous NCHW: the same memory layout (hence the same conv kernels, bit for bit) whether a
+            # batch is collated here or in a DataLoader worker's shared memory
+            x = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2))).float() / 255.0
+            images[camera] = color_jitter(x, rng, cfg.color_jitter) if self.train else x
+        text = self.instructions[k]
+        now = int(obs[-1])
+        if self.train and cfg.subtask_language_prob > 0 and rng.random() < cfg.subtask_language_prob:
+            j = int(self.subtask[k][now])
+            if 0 <= j < len(self.subtask_labels[k]):
+                text = self.subtask_labels[k][j]
+        return {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]),
+                "action": torch.from_numpy(self.action[k][act]), "text": self.text_table[self.text_row[text]]}
+
+    def info(self) -> dict:
+        """What the run records about its data (copied into the bundle manifest)."""
+        metas = [self.store.meta(i) for i in self.episodes]
+        return {"content_hash": self.store.content_hash(), "path": str(self.store.root),
+                "episodes_total": len(self.store), "episodes_used": len(self.episodes),
+                "include_failures": self.include_failures, "steps_used": int(sum(self.lengths)), "samples": len(self),
+                "tasks": sorted({m["task"] for m in metas}), "instructions": sorted(set(self.instructions)),
+                "texts": sorted(self.text_row)}

@@ -1,0 +1,264 @@
+"""The diffusion policy's networks, as bare nn.Modules (no data, schedule or optimizer logic).
+
+Shapes (B batch, To obs horizon, Tp prediction horizon, Da action dim, Dp proprio dim, G global cond dim):
+
+    ImageEncoder     (N, 3, h, w) float in [0, 1]                          -> (N, image_feature_dim)
+    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, Dp) normalized, text (B, 384) -> (B, G)
+    ConditionalUnet1D  noisy actions (B, Tp, Da), timestep (B,) int64, cond (B, G)  -> predicted noise (B, Tp, Da)
+                     (= .denoise(noisy, timestep, .condition(cond)), with .condition(cond) -> (B, F) FiLM part)
+    DiffusionPolicy  .encode(...) -> (B, G); .forward(noisy, t, cond) -> (B, Tp, Da); .loss(...) -> scalar
+
+G = To * (cameras * image_feature_dim + proprio_feature_dim) + text_feature_dim: every observation step's
+features are concatenated (the model sees motion), the instruction once (it does not change within a window).
+
+After Diffusion Policy (Chi et al. 2023): one ResNet per camera (the views differ too much to share
+filters cheaply), GroupNorm instead of BatchNorm (batch statistics break under EMA weight averaging and
+small per-GPU batches), a spatial-softmax head (expected 2-D keypoint positions: a low-dimensional,
+position-aware summary, better for manipulation than global average pooling), and the CNN-based 1-D
+temporal UNet whose residual blocks are FiLM-modulated (per-channel scale and bias) by [step embedding,
+global cond]. The language embedding comes frozen from `policy.text` (MiniLM, 384-D) and is only projected.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from policy.config import TEXT_DIM, PolicyConfig
+
+
+def _gn(ch: int) -> nn.GroupNorm:
+    return nn.GroupNorm(max(1, ch // 16), ch)  # Diffusion Policy's choice: 16 channels per group
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block with GroupNorm: (N, cin, H, W) -> (N, cout, H/stride, W/stride)."""
+
+    def __init__(self, cin: int, cout: int, stride: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.gn1 = _gn(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.gn2 = _gn(cout)
+        self.short = (nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), _gn(cout))
+                      if stride != 1 or cin != cout else nn.Identity())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.gn1(self.conv1(x)))
+        return F.relu(self.gn2(self.conv2(y)) + self.short(x))
+
+
+class SpatialSoftmax(nn.Module):
+    """(N, C, H, W) -> (N, 2K): for each of K learned 1x1 feature maps, the softmax-weighted mean (x, y) in [-1, 1]."""
+
+    def __init__(self, cin: int, keypoints: int):
+        super().__init__()
+        self.proj = nn.Conv2d(cin, keypoints, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, _, h, w = x.shape
+        attn = torch.softmax(self.proj(x).flatten(2), dim=-1)  # (N, K, HW)
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, h, device=x.device), torch.linspace(-1, 1, w, device=x.device),
+                                indexing="ij")
+        pos = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1).to(attn.dtype)  # (HW, 2)
+        return (attn @ pos).flatten(1)
+
+
+class ImageEncoder(nn.Module):
+    """ResNet (stem 7x7/2 + maxpool, stages at strides 1, 2, 2, 2) -> spatial softmax -> linear."""
+
+    def __init__(self, widths: tuple[int, ...], blocks: tuple[int, ...], keypoints: int, out_dim: int):
+        super().__init__()
+        self.stem = nn.Sequential(nn.Conv2d(3, widths[0], 7, 2, 3, bias=False), _gn(widths[0]), nn.ReLU(),
+                                  nn.MaxPool2d(3, 2, 1))
+        layers, cin = [], widths[0]
+        for i, (w, n) in enumerate(zip(widths, blocks)):
+            for j in range(n):
+                layers.append(BasicBlock(cin, w, 2 if (i > 0 and j == 0) else 1))
+                cin = w
+        self.stages = nn.Sequential(*layers)
+        self.pool = SpatialSoftmax(cin, keypoints)
+        self.out = nn.Linear(2 * keypoints, out_dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out(self.pool(self.stages(self.stem(x * 2.0 - 1.0))))
+
+
+class ObsEncoder(nn.Module):
+    """Images (per camera), normalized proprio and the 384-D text embedding -> the global conditioning vector."""
+
+    def __init__(self, cfg: PolicyConfig):
+        super().__init__()
+        self.cameras = tuple(cfg.cameras)
+        self.images = nn.ModuleDict({c: ImageEncoder(cfg.encoder_widths, cfg.encoder_blocks, cfg.keypoints,
+                                                     cfg.image_feature_dim) for c in self.cameras})
+        self.proprio = nn.Sequential(nn.Linear(cfg.proprio_dim, cfg.proprio_feature_dim), nn.Mish(),
+                                     nn.Linear(cfg.proprio_feature_dim, cfg.proprio_feature_dim))
+        self.text = nn.Sequential(nn.Linear(TEXT_DIM, cfg.text_feature_dim), nn.Mish(),
+                                  nn.Linear(cfg.text_feature_dim, cfg.text_feature_dim))
+
+    def forward(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        b, to = proprio.shape[:2]
+        feats = [self.images[c](images[c].flatten(0, 1)).view(b, to, -1) for c in self.cameras]
+        feats.append(self.proprio(proprio))
+        return torch.cat([torch.cat(feats, dim=-1).flatten(1), self.text(text)], dim=-1)
+
+
+class SinusoidalPosEmb(nn.Module):
+    """(B,) timesteps -> (B, dim) sin/cos features (Transformer positional encoding)."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.dim = dim
+
+    def forward(self, t: torch.Tensor) -> torch.Tensor:
+        half = self.dim // 2
+        freqs = torch.exp(torch.arange(half, device=t.device, dtype=torch.float32) * (-math.log(10000.0) / (half - 1)))
+        arg = t.to(torch.float32)[:, None] * freqs[None]
+        return torch.cat([arg.sin(), arg.cos()], dim=-1)
+
+
+def _tconv(cin: int, cout: int, k: int, stride: int = 1) -> nn.Conv2d:
+    """A temporal convolution over (B, C, 1, T): a Conv1d written as a (1, k) Conv2d. Same function and
+    parameter count; onnxruntime's CPU 2-D conv kernels (NCHWc) run it ~2x faster than its 1-D path
+    (measured on this machine: 33 vs 72 us at 256 channels, T=4), and the denoiser is made of them."""
+    return nn.Conv2d(cin, cout, (1, k), (1, stride), (0, k // 2))
+
+
+class Conv1dBlock(nn.Sequential):
+    """Temporal conv -> GroupNorm -> Mish: (B, cin, 1, T) -> (B, cout, 1, T)."""
+
+    def __init__(self, cin: int, cout: int, k: int, groups: int):
+        super().__init__(_tconv(cin, cout, k), nn.GroupNorm(groups, cout), nn.Mish())
+
+
+class CondResBlock1D(nn.Module):
+    """Two conv blocks; between them FiLM: y = scale * y + bias, with (scale, bias) computed from the cond."""
+
+    def __init__(self, cin: int, cout: int, k: int, groups: int):
+        super().__init__()
+        self.block1, self.block2 = Conv1dBlock(cin, cout, k, groups), Conv1dBlock(cout, cout, k, groups)
+        self.res = _tconv(cin, cout, 1) if cin != cout else nn.Identity()
+        self.cout = cout
+
+    def forward(self, x: torch.Tensor, film: torch.Tensor) -> torch.Tensor:
+        scale, bias = film[:, :self.cout, None, None], film[:, self.cout:, None, None]
+        return self.block2(scale * self.block1(x) + bias) + self.res(x)
+
+
+class ConditionalUnet1D(nn.Module):
+    """Temporal UNet over the action sequence: (B, Tp, Da), (B,) timesteps, (B, G) -> (B, Tp, Da).
+
+    Each level but the last halves Tp (so Tp must be divisible by 2**(levels-1)); skips concatenate.
+    FiLM as in Diffusion Policy: every residual block's (scale, bias) = Linear(Mish([step_emb(t), cond])).
+    Two exact rewrites of that for a CPU, where this small network is bound by per-op overhead and weight
+    reads rather than FLOPs: the blocks' linears are stacked into one matrix (one GEMM, not 12), and the
+    matrix is split by input, Linear(Mish([e, c])) = W_e Mish(e) + b + W_c Mish(c), so the cond half
+    (G x F, 90 % of the weights) runs once per chunk (`condition`) instead of once per denoising step
+    (`denoise`): measured 183 -> 26 us per step on this machine.
+    """
+
+    def __init__(self, action_dim: int, global_cond_dim: int, step_embed_dim: int, down_dims: tuple[int, ...],
+                 kernel_size: int, groups: int):
+        super().__init__()
+        d = step_embed_dim
+        self.step_encoder = nn.Sequential(SinusoidalPosEmb(d), nn.Linear(d, 4 * d), nn.Mish(), nn.Linear(4 * d, d))
+        dims = [action_dim, *down_dims]
+        in_out = list(zip(dims[:-1], dims[1:]))
+        blk = lambda a, b: CondResBlock1D(a, b, kernel_size, groups)  # noqa: E731
+        self.down = nn.ModuleList()
+        for i, (a, b) in enumerate(in_out):
+            last = i == len(in_out) - 1
+            self.down.append(nn.ModuleList([blk(a, b), blk(b, b), nn.Identity() if last else _tconv(b, b, 3, 2)]))
+        self.mid = nn.ModuleList([blk(dims[-1], dims[-1]), blk(dims[-1], dims[-1])])
+        self.up = nn.ModuleList()
+        for a, b in reversed(in_out[1:]):
+            self.up.append(nn.ModuleList([blk(2 * b, a), blk(a, a), nn.ConvTranspose2d(a, a, (1, 4), (1, 2), (0, 1))]))
+        self.final = nn.Sequential(Conv1dBlock(down_dims[0], down_dims[0], kernel_size, groups),
+                                   _tconv(down_dims[0], action_dim, 1))
+        self.film_sizes = [2 * m.cout for m in self.modules() if isinstance(m, CondResBlock1D)]  # call order
+        self.film_dim = sum(self.film_sizes)
+        self.film_step = nn.Sequential(nn.Mish(), nn.Linear(d, self.film_dim))
+        self.film_cond = nn.Sequential(nn.Mish(), nn.Linear(global_cond_dim, self.film_dim, bias=False))
+
+    def condition(self, cond: torch.Tensor) -> torch.Tensor:
+        """(B, G) global cond -> (B, F) its contribution to every FiLM layer (constant across DDIM steps)."""
+        return self.film_cond(cond)
+
+    def denoise(self, sample: torch.Tensor, timestep: torch.Tensor, film_cond: torch.Tensor) -> torch.Tensor:
+        """One step from a precomputed `condition(cond)`: (B, Tp, Da), (B,), (B, F) -> (B, Tp, Da)."""
+        film = self.film_step(self.step_encoder(timestep.expand(sample.shape[0]))) + film_cond
+        films = iter(film.split(self.film_sizes, dim=1))
+        x = sample.transpose(1, 2).unsqueeze(2)  # (B, Da, 1, Tp): channels first, see _tconv
+        skips = []
+        for r1, r2, down in self.down:
+            x = r2(r1(x, next(films)), next(films))
+            skips.append(x)
+            x = down(x)
+        for r in self.mid:
+            x = r(x, next(films))
+        for r1, r2, up in self.up:
+            x = torch.cat([x, skips.pop()], dim=1)
+            x = up(r2(r1(x, next(films)), next(films)))
+        return self.final(x).squeeze(2).transpose(1, 2)
+
+    def forward(self, sample: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        return self.denoise(sample, timestep, self.condition(cond))
+
+
+class DiffusionPolicy(nn.Module):
+    """ObsEncoder + ConditionalUnet1D, plus the epsilon-prediction DDPM loss (randomness passed in)."""
+
+    def __init__(self, cfg: PolicyConfig):
+        super().__init__()
+        from policy.schedule import alphas_cumprod
+
+        self.cfg = cfg
+        self.obs_encoder = ObsEncoder(cfg)
+        self.unet = ConditionalUnet1D(cfg.action_dim, cfg.global_cond_dim, cfg.step_embed_dim, cfg.down_dims,
+                                      cfg.kernel_size, cfg.group_norm_groups)
+        ab = torch.tensor(alphas_cumprod(cfg.num_train_timesteps, cfg.beta_schedule), dtype=torch.float32)
+        self.register_buffer("alphas_cumprod", ab, persistent=False)
+
+    def encode(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        return self.obs_encoder(images, proprio, text)
+
+    def forward(self, noisy: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        return self.unet(noisy, timestep, cond)
+
+    def loss(self, batch: dict, noise: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
+        """MSE between the true and predicted noise of x_t = sqrt(ab_t) a0 + sqrt(1 - ab_t) eps.
+
+        batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
+        (all normalized); noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
+        """
+        cond = self.encode(batch["images"], batch["proprio"], batch["text"])
+        ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
+        noisy = ab.sqrt() * batch["action"] + (1 - ab).sqrt() * noise
+        return F.mse_loss(self(noisy, timesteps, cond), noise)
+
+
+def prepare_images(frames: torch.Tensor, crop_size: tuple[int, int]) -> torch.Tensor:
+    """Camera frames as recorded, (B, To, H, W, 3) uint8 -> centre-cropped (B, To, 3, h, w) float in [0, 1].
+
+    The inference-time counterpart of the training crop; exported inside obs_encoder.onnx so the runtime
+    feeds raw frames and cannot get the crop or the scaling wrong.
+    """
+    H, W = frames.shape[2:4]
+    h, w = crop_size
+    top, left = (H - h) // 2, (W - w) // 2
+    x = frames[:, :, top:top + h, left:left + w, :].permute(0, 1, 4, 2, 3)
+    return x.to(torch.float32) / 255.0
+
+
+def film_dim(cfg: PolicyConfig) -> int:
+    """F: the width of the denoiser's FiLM conditioning (2 x channels of every residual block)."""
+    d = cfg.down_dims
+    return 2 * (2 * sum(d) + 2 * d[-1] + 2 * sum(d[:-1]))
+
+
+def count_params(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

@@ -1,0 +1,57 @@
+"""Noise schedules and the DDIM update, in plain numpy (also applied to torch tensors: same arithmetic).
+
+numpy-only on purpose: training (torch), export (baked into the manifest) and the checks all take the
+schedule from here, so the runtime-side loop in `policy.bundle` (which must not import torch, and restates
+`ddim_step` in three lines) runs exactly the numbers the policy was trained and verified with.
+
+- DDPM betas: `squaredcos_cap_v2` (Nichol & Dhariwal 2021: alpha_bar(t) = cos^2((t/T + 0.008)/1.008 * pi/2),
+  betas capped at 0.999), the Diffusion Policy default; `linear` (1e-4..0.02) for comparison.
+- DDIM timesteps use "trailing" spacing (Lin et al. 2024, "Common Diffusion Noise Schedules and Sample Steps
+  are Flawed"): with 8 of 100 steps the first evaluation is at t=99, where the input really is pure noise.
+  The "leading" spacing of the original DDIM starts at t=84 (alpha_bar = 0.06), a mismatch with the
+  N(0, I) initial sample that shows as a bias at few steps. The last step jumps to alpha_bar = 1 (x0).
+- Deterministic DDIM (eta = 0) with x0 clipped to [-1, 1], where every normalized action dimension lives.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def betas(num_train_timesteps: int = 100, schedule: str = "squaredcos_cap_v2") -> np.ndarray:
+    T = num_train_timesteps
+    if schedule == "squaredcos_cap_v2":
+        def alpha_bar(t):
+            return math.cos((t + 0.008) / 1.008 * math.pi / 2) ** 2
+
+        return np.array([min(1 - alpha_bar((i + 1) / T) / alpha_bar(i / T), 0.999) for i in range(T)], np.float64)
+    if schedule == "linear":
+        return np.linspace(1e-4, 0.02, T, dtype=np.float64)
+    raise ValueError(f"unknown beta schedule {schedule!r}")
+
+
+def alphas_cumprod(num_train_timesteps: int = 100, schedule: str = "squaredcos_cap_v2") -> np.ndarray:
+    """(T,) float64: alpha_bar_t, the signal fraction of x_t = sqrt(ab) x0 + sqrt(1 - ab) eps."""
+    return np.cumprod(1.0 - betas(num_train_timesteps, schedule))
+
+
+def ddim_schedule(num_train_timesteps: int = 100, inference_steps: int = 8,
+                  schedule: str = "squaredcos_cap_v2") -> dict:
+    """The whole inference loop as data: timesteps (descending), alpha_bar at each and at its successor."""
+    T, n = num_train_timesteps, inference_steps
+    if not 1 <= n <= T:
+        raise ValueError(f"inference steps {n} must be in [1, {T}]")
+    ts = np.round(np.arange(T, 0, -T / n)).astype(np.int64) - 1
+    ab = alphas_cumprod(T, schedule)
+    prev = np.concatenate([ab[ts[1:]], [1.0]])
+    return {"timesteps": ts.tolist(), "alpha_bar": ab[ts].tolist(), "alpha_bar_prev": prev.tolist()}
+
+
+def ddim_step(x, eps, alpha_bar: float, alpha_bar_prev: float, clip: bool = True):
+    """One deterministic DDIM update x_t -> x_prev from the predicted noise (numpy arrays or torch tensors)."""
+    x0 = (x - math.sqrt(1.0 - alpha_bar) * eps) / math.sqrt(alpha_bar)
+    if clip:
+        x0 = x0.clip(-1.0, 1.0)
+    return math.sqrt(alpha_bar_prev) * x0 + math.sqrt(1.0 - alpha_bar_prev) * eps

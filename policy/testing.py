@@ -1,0 +1,59 @@
+"""Small fixtures for tests and smoke runs: a synthetic episode dataset, a tiny config, a hash embedder.
+
+Kept in the package (like datagen.workers.synthetic_episode) so tests, benchmarks and a quick manual
+`sudd train` on fake data all build the same things.
+"""
+
+from __future__ import annotations
+
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from datagen.store import ShardWriter
+from datagen.workers import synthetic_episode
+
+# A policy that trains in seconds on 32x32 synthetic episodes (tests only: far too small to learn a task).
+TINY = {"image_size": [32, 32], "crop_size": [28, 28], "encoder_widths": [8, 16], "encoder_blocks": [1, 1],
+        "keypoints": 8, "image_feature_dim": 16, "proprio_feature_dim": 16, "text_feature_dim": 16,
+        "down_dims": [16, 32], "step_embed_dim": 16, "batch_size": 8, "warmup_steps": 2, "lr": 1e-3,
+        "checkpoint_every": 4, "log_every": 2}
+
+
+def synthetic_dataset(root: str | Path, episodes: int = 6, tasks: tuple[str, ...] = ("pick_place",),
+                      size: int = 32, steps: int | None = None, smooth: bool = False) -> Path:
+    """Write `episodes` synthetic episodes per task (about 70 % labelled successful) to root/shards/w0.zarr.
+
+    smooth=True replaces the i.i.d. random proprio/actions of `synthetic_episode` by a trajectory that
+    follows the square moving across the images (a straight reach, a constant orientation, the gripper
+    closing halfway), so a policy has something learnable: the loss of a few training steps must drop.
+    """
+    with ShardWriter(root, "w0") as w:
+        for task in tasks:
+            for seed in range(episodes):
+                ep = synthetic_episode(task, seed, steps=steps, size=size)
+                if smooth:
+                    _smooth(ep, seed)
+                w.append(ep)
+    return Path(root)
+
+
+def _smooth(ep, seed: int) -> None:
+    T = len(ep)
+    s = np.linspace(0.0, 1.0, T)[:, None]
+    start = np.array([0.3 + 0.02 * (seed % 5), -0.2, 0.25])
+    pos = start + s * np.array([0.0, 0.4, -0.1])
+    rot = np.tile([1.0, 0, 0, 0, -1.0, 0], (T, 1))
+    grip = (s > 0.5).astype(float)
+    q = np.hstack([s * k for k in (0.5, -0.3, 0.2, 0.1, -0.4, 0.3)])
+    ep.proprio = np.hstack([pos, rot, grip, q]).astype(np.float32)
+    nxt = np.vstack([pos[1:], pos[-1:]])
+    ep.action = np.hstack([nxt, rot, np.vstack([grip[1:], grip[-1:]])]).astype(np.float32)
+
+
+def hash_embedder(texts: list[str]) -> np.ndarray:
+    """A deterministic stand-in for MiniLM: one random unit vector per distinct string (no model load)."""
+    out = np.stack([np.random.default_rng(zlib.crc32(t.encode())).normal(size=384) for t in texts]) if texts \
+        else np.zeros((0, 384))
+    return (out / np.linalg.norm(out, axis=-1, keepdims=True).clip(1e-12)).astype(np.float32)

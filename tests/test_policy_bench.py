@@ -1,0 +1,24 @@
+"""`sudd bench policy --quick`: a fresh `small` export, measured; every figure is present and sane."""
+
+import os
+import tempfile
+from pathlib import Path
+
+from policy.bench import format_table, run_policy_bench
+
+CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"  # shared with test_policy_export
+
+
+def test_bench_quick_returns_its_keys(monkeypatch):
+    monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
+    f = run_policy_bench(quick=True)
+    assert f["preset"] == "small" and f["ddim_steps"] == 8
+    for key in ("chunk", "obs_encoder", "denoise_step", "text_embed", "params", "bytes", "load_ms", "meets_target"):
+        assert key in f, key
+    for name in ("threads_2", "threads_1"):
+        c = f["chunk"][name]
+        assert 0 < c["p50_ms"] <= c["p99_ms"] and c["n"] == 20
+    assert 2e6 <= f["params"]["obs_encoder"] + f["params"]["denoiser"] <= 5e6
+    assert {"obs_encoder.onnx", "denoiser.onnx", "text_encoder.onnx", "stats.npz", "total"} <= set(f["bytes"])
+    assert f["bytes"]["total"] < 60e6
+    assert "chunk" in format_table(f)

@@ -1,0 +1,124 @@
+"""Policy samples from the episode store: windows and padding, success filtering, language, augmentation."""
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.store import Dataset
+from policy.config import load_policy_config
+from policy.data import PolicyDataset, episode_success
+from policy.testing import TINY, hash_embedder, synthetic_dataset
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    return synthetic_dataset(tmp_path_factory.mktemp("data"), episodes=6, tasks=("pick_place", "stack"))
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_policy_config(TINY, {"color_jitter": 0.0})
+
+
+def test_success_filtering(data_dir, cfg):
+    store = Dataset(data_dir)
+    labels = [episode_success(store.meta(i)) for i in range(len(store))]
+    assert 0 < sum(labels) < len(labels)  # the synthetic set has both
+    ds = PolicyDataset(data_dir, cfg, embedder=hash_embedder)
+    assert ds.episodes == [i for i, ok in enumerate(labels) if ok]
+    everything = PolicyDataset(data_dir, cfg, embedder=hash_embedder, include_failures=True)
+    assert everything.episodes == list(range(len(store)))
+    assert episode_success({"label": {"value": False, "source": "check"}, "success": True}) is False
+    assert episode_success({"label": {"value": None}, "success": True}) is True
+
+
+def test_windows_and_padding(data_dir, cfg):
+    ds = PolicyDataset(data_dir, cfg, train=False, embedder=hash_embedder)
+    To, Tp, Ta = cfg.obs_horizon, cfg.pred_horizon, cfg.action_horizon
+    k = 0
+    T = ds.lengths[k]
+    starts = [s for kk, s in ds.index if kk == k]
+    assert starts[0] == -(To - 1) and starts[-1] == T - Tp + Ta - 1  # pad <= To-1 before, <= Ta-1 after
+    raw = Dataset(data_dir).window(ds.episodes[k], fields=("proprio", "action"))
+    first = ds[ds.index.index((k, starts[0]))]
+    np.testing.assert_allclose(ds.normalizer.unnormalize_proprio(first["proprio"].numpy()),
+                               np.repeat(raw["proprio"][:1], To, 0), atol=1e-5)  # repeats the first step
+    np.testing.assert_allclose(ds.normalizer.unnormalize_action(first["action"].numpy()),
+                               raw["action"][np.clip(np.arange(starts[0], starts[0] + Tp), 0, None)], atol=1e-5)
+    last = ds[ds.index.index((k, starts[-1]))]
+    acts = ds.normalizer.unnormalize_action(last["action"].numpy())
+    s = starts[-1]
+    np.testing.assert_allclose(acts[:T - s], raw["action"][s:], atol=1e-5)
+    np.testing.assert_allclose(acts[T - s:], np.repeat(raw["action"][-1:], Tp - (T - s), 0), atol=1e-5)
+    assert Tp - (T - s) == Ta - 1
+    np.testing.assert_allclose(ds.normalizer.unnormalize_proprio(last["proprio"].numpy()),
+                               raw["proprio"][s:s + To], atol=1e-5)
+
+
+def test_sample_shapes_and_ranges(data_dir, cfg):
+    ds = PolicyDataset(data_dir, cfg, embedder=hash_embedder)
+    x = ds[(3, 7)]
+    for c in cfg.cameras:
+        assert x["images"][c].shape == (cfg.obs_horizon, 3, *cfg.crop_size) and x["images"][c].dtype == torch.float32
+        assert 0.0 <= float(x["images"][c].min()) and float(x["images"][c].max()) <= 1.0
+    assert x["proprio"].shape == (cfg.obs_horizon, 16) and x["action"].shape == (cfg.pred_horizon, 10)
+    assert x["text"].shape == (384,)
+    allacts = np.concatenate(ds.action)
+    pos = allacts[:, [0, 1, 2, 9]]
+    assert pos.min() >= -1 - 1e-5 and pos.max() <= 1 + 1e-5
+    batch = torch.utils.data.default_collate([ds[(i, i)] for i in range(4)])
+    assert batch["images"][cfg.cameras[0]].shape[0] == 4
+
+
+def test_augmentation_is_seeded_and_eval_is_centre_crop(data_dir):
+    cfg = load_policy_config(TINY, {"color_jitter": 0.3})
+    ds = PolicyDataset(data_dir, cfg, embedder=hash_embedder)
+    a, b, c = ds[(5, 1)], ds[(5, 1)], ds[(5, 2)]
+    cam = cfg.cameras[0]
+    assert torch.equal(a["images"][cam], b["images"][cam])
+    assert not torch.equal(a["images"][cam], c["images"][cam])
+    ev = PolicyDataset(data_dir, cfg, train=False, embedder=hash_embedder, normalizer=ds.normalizer)
+    k, s = ev.index[5]
+    frames = Dataset(data_dir).window(ev.episodes[k], fields=(f"{cam}_rgb",))[f"{cam}_rgb"]
+    t = np.clip(np.arange(s, s + cfg.obs_horizon), 0, ev.lengths[k] - 1)
+    H, h = cfg.image_size[0], cfg.crop_size[0]
+    o = (H - h) // 2
+    ref = torch.from_numpy(frames[t, o:o + h, o:o + h]).permute(0, 3, 1, 2).float() / 255
+    assert torch.equal(ev[5]["images"][cam], ref)
+
+
+def test_language_embedded_once_per_string(data_dir):
+    calls = []
+
+    def embedder(texts):
+        calls.append(list(texts))
+        return hash_embedder(texts)
+
+    cfg = load_policy_config(TINY, {"subtask_language_prob": 0.5})
+    ds = PolicyDataset(data_dir, cfg, embedder=embedder)
+    assert len(calls) == 1 and len(calls[0]) == len(set(calls[0]))
+    assert set(calls[0]) == {"do pick_place", "do stack", "pick_place part 1", "pick_place part 2",
+                             "stack part 1", "stack part 2"}
+    rows = {tuple(ds[(i, i)]["text"].numpy().round(5)) for i in range(0, len(ds), 3)}
+    assert len(rows) > 2  # root instructions and subtask labels both appear
+    info = ds.info()
+    assert info["tasks"] == ["pick_place", "stack"] and info["instructions"] == ["do pick_place", "do stack"]
+    assert info["content_hash"] == Dataset(data_dir).content_hash()
+
+
+def test_image_cache_off_reads_the_same(data_dir, cfg):
+    cached = PolicyDataset(data_dir, cfg, embedder=hash_embedder)
+    streamed = PolicyDataset(data_dir, cfg, embedder=hash_embedder, max_cache_bytes=0)
+    assert cached.images is not None and streamed.images is None
+    for i in (0, 9, len(cached) - 1):
+        for c in cfg.cameras:
+            assert torch.equal(cached[(i, 3)]["images"][c], streamed[(i, 3)]["images"][c])
+
+
+def test_no_successful_episode_is_an_error(tmp_path, cfg):
+    synthetic_dataset(tmp_path, episodes=1, tasks=("stack",))
+    store = Dataset(tmp_path)
+    if episode_success(store.meta(0)):
+        pytest.skip("the one synthetic episode happens to be a success")
+    with pytest.raises(ValueError, match="verified success"):
+        PolicyDataset(tmp_path, cfg, embedder=hash_embedder)

@@ -1,0 +1,232 @@
+"""Export and the runtime loader: torch/onnxruntime parity, the text encoder, and Bundle.load's refusals."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from policy.bundle import Bundle, BundleError, expected_graphs
+from policy.export import CHUNK_TOL, STEP_TOL, _onnx_export, export, text_encoder_onnx
+from policy.normalize import Normalizer
+from policy.sampling import predict_chunk
+from policy.testing import TINY, hash_embedder, synthetic_dataset
+from policy.train import load_run_model, train
+
+ROOT = Path(__file__).resolve().parents[1]
+CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"  # content-keyed: never stale
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("policy")
+    data = synthetic_dataset(root / "data", episodes=6, tasks=("pick_place", "stack"), smooth=True)
+    train(data, dict(TINY), root / "run", steps=6, embedder=hash_embedder, progress=False, threads=1)
+    return root / "run"
+
+
+@pytest.fixture(scope="module")
+def bundle_dir(run):
+    export(run, run.parent / "bundle", cache_dir=CACHE)
+    return run.parent / "bundle"
+
+
+@pytest.fixture(scope="module")
+def bundle(bundle_dir):
+    return Bundle.load(bundle_dir)
+
+
+@pytest.fixture(scope="module")
+def embedder():
+    from policy.text import SentenceEmbedder
+
+    return SentenceEmbedder()
+
+
+def test_layout_and_manifest(bundle_dir):
+    m = json.loads((bundle_dir / "manifest.json").read_text())
+    for name in ("manifest.json", "obs_encoder.onnx", "denoiser.onnx", "text_encoder.onnx", "stats.npz",
+                 "tokenizer/tokenizer.json"):
+        assert (bundle_dir / name).is_file(), name
+    assert m["format"] == "sudd-policy-bundle" and m["format_version"] == 1 and m["opset"] == 17
+    assert m["horizons"] == {"obs": 2, "pred": 16, "action": 8, "execute_from": 1, "control_hz": 10.0}
+    assert m["tasks"] == ["pick_place", "stack"] and m["instructions"] == ["do pick_place", "do stack"]
+    assert len(m["data"]["content_hash"]) == 64 and m["training"]["ema"] is True
+    assert len(m["ddim"]["timesteps"]) == m["config"]["inference_steps"] <= 8
+    assert m["graphs"] == {k: dict(v, file=m["graphs"][k]["file"]) for k, v in expected_graphs(m).items()}
+    assert m["parity"]["step_max_abs_err"] <= STEP_TOL and m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL
+    assert m["text_encoder"]["int8_min_cosine_vs_fp32"] >= 0.99
+    assert (bundle_dir / "text_encoder.onnx").stat().st_size < 30e6  # int8: ~23 MB instead of ~90 MB
+
+
+def test_parity_torch_vs_onnxruntime(run, bundle):
+    model, cfg, _ = load_run_model(run)
+    norm = Normalizer.load(run / "stats.npz")
+    rng = np.random.default_rng(42)
+    step_err = chunk_err = 0.0
+    for _ in range(3):
+        images = {c: rng.integers(0, 256, (2, *cfg.image_size, 3), dtype=np.uint8) for c in cfg.cameras}
+        proprio = norm.proprio_min + (norm.proprio_max - norm.proprio_min) * rng.random((2, 16), dtype=np.float32)
+        text = bundle.embed("do stack")
+        noise = rng.normal(size=(16, 10)).astype(np.float32)
+        trace = []
+        chunk = bundle.act(images, proprio, text, noise=noise, trace=trace)
+        with torch.no_grad():
+            for x, t, eps in trace[1:]:
+                ref = model.unet.denoise(torch.from_numpy(x), torch.tensor([t]), torch.from_numpy(trace[0]))
+                step_err = max(step_err, float(np.abs(ref.numpy() - eps).max()))
+        ref_chunk = predict_chunk(model, norm, images, proprio, text, noise)
+        chunk_err = max(chunk_err, float(np.abs(ref_chunk - chunk).max()))
+    assert step_err <= 1e-4 and chunk_err <= 1e-3, (step_err, chunk_err)
+
+
+def test_act_outputs(bundle):
+    rng = np.random.default_rng(0)
+    images = {c: rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8) for c in bundle.cameras}
+    proprio = np.tile(np.array([0.3, -0.2, 0.25, 1, 0, 0, 0, -1, 0, 0, 0, 0, 0, 0, 0, 0], np.float32), (2, 1))
+    e = bundle.embed("do pick_place")
+    a = bundle.act(images, proprio, e, rng=np.random.default_rng(1))
+    assert a.shape == (16, 10) and a.dtype == np.float32 and np.all(np.isfinite(a))
+    x, y = a[:, 3:6], a[:, 6:9]
+    np.testing.assert_allclose(np.linalg.norm(x, axis=1), 1, atol=1e-5)
+    np.testing.assert_allclose((x * y).sum(1), 0, atol=1e-5)
+    lo, hi = bundle.stats["action_min"], bundle.stats["action_max"]
+    for d in (0, 1, 2, 9):  # clipped DDIM: absolute targets stay inside the demonstrated range
+        assert lo[d] - 1e-5 <= a[:, d].min() and a[:, d].max() <= hi[d] + 1e-5
+    np.testing.assert_array_equal(a, bundle.act(images, proprio, e, rng=np.random.default_rng(1)))
+    assert not np.array_equal(a, bundle.act(images, proprio, e, rng=np.random.default_rng(2)))
+    assert a[bundle.execute].shape == (8, 10)
+    with pytest.raises(ValueError, match="image 'scene'"):
+        bundle.act(dict(images, scene=images["scene"][:, :16]), proprio, e)
+    with pytest.raises(ValueError, match="proprio"):
+        bundle.act(images, proprio[:1], e)
+
+
+def test_text_encoder_parity_and_minilm_sanity(bundle, embedder, tmp_path):
+    from policy.text import tokenize
+
+    sentences = ["Put the green block into the top drawer.", "place the green cube inside the upper drawer",
+                 "open the drawer", "what a beautiful sunset over the ocean", "stack it"]
+    ids, mask = tokenize(embedder.tokenizer, sentences)  # padded batch: the mask path is exercised
+    _onnx_export(embedder.encoder, (torch.from_numpy(ids), torch.from_numpy(mask)), tmp_path / "fp32.onnx",
+                 ["input_ids", "attention_mask"], ["embedding"],
+                 {"input_ids": {0: "B", 1: "L"}, "attention_mask": {0: "B", 1: "L"}, "embedding": {0: "B"}}, 17)
+    import onnxruntime as ort
+
+    ref = embedder(sentences)
+    fp32 = ort.InferenceSession(str(tmp_path / "fp32.onnx"), providers=["CPUExecutionProvider"]).run(
+        None, {"input_ids": ids, "attention_mask": mask})[0]
+    assert np.abs(fp32 - ref).max() <= 1e-4
+    np.testing.assert_allclose(np.linalg.norm(ref, axis=1), 1, atol=1e-5)
+    q = np.stack([bundle.embed(s) for s in sentences])  # the bundle's int8 graph, unpadded, one at a time
+    assert ((q * ref).sum(1) >= 0.99).all(), (q * ref).sum(1)
+    for emb in (ref, q):
+        sim = emb @ emb.T
+        assert sim[0, 1] > 0.6 and sim[0, 1] > sim[0, 3] + 0.4 and sim[0, 1] > sim[0, 2]
+    _, info = text_encoder_onnx(CACHE)
+    assert info["fp32_onnx_max_abs_err"] <= 1e-4 and info["int8_min_cosine_vs_fp32"] >= 0.99
+
+
+def test_task_similarity(bundle):
+    best, cos = bundle.task_similarity("do stack")
+    assert best == "do stack" and cos == pytest.approx(1.0, abs=1e-5)
+    best, cos_far = bundle.task_similarity("tell me a joke about penguins")
+    assert cos_far < 0.5
+
+
+def _broken_copy(src: Path, dst: Path) -> Path:
+    """A copy whose large files are symlinks (fast); manifest and stats are real files to edit."""
+    dst.mkdir()
+    for p in src.iterdir():
+        if p.name in ("manifest.json", "stats.npz"):
+            shutil.copyfile(p, dst / p.name)
+        else:
+            (dst / p.name).symlink_to(p)
+    return dst
+
+
+def _edit(path: Path, fn) -> None:
+    m = json.loads((path / "manifest.json").read_text())
+    fn(m)
+    (path / "manifest.json").write_text(json.dumps(m))
+
+
+def _rehash(path: Path, rel: str) -> None:
+    import hashlib
+
+    data = (path / rel).read_bytes()
+    _edit(path, lambda m: m["files"].__setitem__(rel, {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}))
+
+
+def _flip(data: bytes) -> bytes:
+    k = len(data) // 2
+    return data[:k] + bytes([data[k] ^ 1]) + data[k + 1:]
+
+
+def _pred24(m):
+    m["horizons"]["pred"] = 24
+    for k, v in expected_graphs(m).items():
+        m["graphs"][k].update(v)
+
+
+def _bad_stats(p: Path):
+    with np.load(p / "stats.npz") as z:
+        d = dict(z)
+    d["action_scale"] = d["action_scale"][:9]
+    np.savez(p / "stats.npz", **d)
+    _rehash(p, "stats.npz")
+
+
+@pytest.mark.parametrize("breakage, reason", [
+    (lambda p: (p / "denoiser.onnx").unlink(), "missing file denoiser.onnx"),
+    (lambda p: (p / "manifest.json").unlink(), "missing file manifest.json"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("format_version", 2)), "format_version 2"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("format", "zip")), "not a policy bundle"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("opset", 99)), "opset 99 is outside"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("opset", 16)), "uses opset 17, the manifest declares 16"),
+    (lambda p: _edit(p, lambda m: m["horizons"].__setitem__("pred", 24)), "do not follow"),
+    (lambda p: _edit(p, _pred24), "denoiser.onnx inputs are"),
+    (lambda p: _edit(p, lambda m: m["dims"].__setitem__("cond", 7)), "do not follow"),
+    (_bad_stats, "action_scale has shape"),
+    (lambda p: (p / "stats.npz").write_bytes(_flip((p / "stats.npz").read_bytes())), "content differs"),
+    (lambda p: (p / "stats.npz").write_bytes(b"garbage"), "7 bytes, manifest says"),
+    (lambda p: _edit(p, lambda m: m.pop("ddim")), "no 'ddim'"),
+])
+def test_load_refuses_broken_bundles(bundle_dir, tmp_path, breakage, reason):
+    broken = _broken_copy(bundle_dir, tmp_path / "b")
+    Bundle.load(broken, warmup=False)  # intact before the breakage
+    breakage(broken)
+    with pytest.raises(BundleError, match=reason):
+        Bundle.load(broken, warmup=False)
+
+
+def test_bundle_module_does_not_import_torch(bundle_dir):
+    code = (f"import sys, numpy as np; from policy.bundle import Bundle; b = Bundle.load({str(bundle_dir)!r}); "
+            "b.act({c: np.zeros((2, 32, 32, 3), np.uint8) for c in b.cameras}, np.zeros((2, 16)), b.embed('hi')); "
+            "assert 'torch' not in sys.modules and 'transformers' not in sys.modules, 'torch imported'")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_cli_export(run, tmp_path, capsys, monkeypatch):
+    import argparse
+
+    from policy.cli import parse_overrides, register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["export", str(run), "--out", str(tmp_path / "b")])
+    monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
+    assert args.func(args) == 0
+    assert "parity step" in capsys.readouterr().out and (tmp_path / "b" / "manifest.json").is_file()
+    targs = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", "--set", "lr=0.001", "--set", "preset=full"])
+    assert targs.steps == 5 and parse_overrides(targs.set) == {"lr": 0.001, "preset": "full"}
+    with pytest.raises(SystemExit):
+        parser.parse_args(["train", "data", "--out", "r"])  # --steps or --epochs is required
