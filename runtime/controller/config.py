@@ -1,0 +1,68 @@
+"""ControllerConfig: every knob of the chunk controller, typed and range-checked like the rest of sudd.
+
+Why these defaults:
+* `execution_latency` 0.016 s: measured on the twin (UR5e 500 Hz and UR5 125 Hz) with the servo settings
+  below: line-tracking error is smallest there (p50 < 0.1 mm at 0.1 m/s, vs 1.6 mm with no compensation).
+  The cross-correlation estimate (`ControllerLoop.latency_estimate()`, UMI's method) reads 14-15 ms: the
+  correlation peak of a first-order lag (servo_j's tau = lookahead * 300 / gain = 15 ms) lies a little below
+  its mean delay. On a real UR with lookahead 0.1 / gain 300 UMI measured ~100 ms end to end; set it from
+  the estimate on the real arm (or turn on `adapt_latency`).
+* `blend_time` 0.15 s: the brief's 100-200 ms window; it is lengthened automatically when the old and the
+  new trajectory differ so much that a 0.15 s blend would need more than `budget` of a joint's jerk,
+  acceleration or velocity limit (up to `max_blend_time`).
+* servo lookahead 0.05 s / gain 1000: the stream is already C2-smooth at the servo rate, so the robot's own
+  smoothing (which adds lag) can be light.
+* gripper hysteresis 0.4 / 0.6: the policy's channel is a regressed 0..1 value that hovers near 0.5 while
+  it is undecided; a band keeps the fingers from chattering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from sim.config import ConfigError, spec, validate
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    execution_latency: float = field(default=0.016, metadata=spec(0.0, 0.5, "s",
+                                     doc="targets are commanded this much before their action time"))
+    adapt_latency: bool = field(default=False, metadata=spec(doc="follow the online latency estimate"))
+    latency_slew: float = field(default=0.002, metadata=spec(0.0, 0.1, "s/s",
+                                doc="how fast an adapted latency may change (keeps the stream smooth)"))
+    latency_window: float = field(default=2.0, metadata=spec(0.2, 10.0, "s", doc="cross-correlation window"))
+    blend_time: float = field(default=0.15, metadata=spec(0.01, 1.0, "s", doc="old->new chunk blend window"))
+    max_blend_time: float = field(default=1.5, metadata=spec(0.01, 5.0, "s"))
+    budget: float = field(default=0.5, metadata=spec(0.05, 1.0,
+                          doc="fraction of the safety limits a blend may use (jerk, accel, velocity)"))
+    max_start_offset: float = field(default=0.3, metadata=spec(0.0, 3.2, "rad",
+                                    doc="a chunk's first knot this far from the trajectory: rejected"))
+    jump_factor: float = field(default=3.0, metadata=spec(1.0, 20.0,
+                               doc="knot-to-knot joint step allowed: factor x velocity limit x interval"))
+    jump_slack: float = field(default=0.02, metadata=spec(0.0, 1.0, "rad", doc="added to that step bound"))
+    ik_tolerance: float = field(default=1e-4, metadata=spec(1e-9, 0.01, "m",
+                                doc="IK result must reproduce the target this well (rad for rotation x 10)"))
+    servo_lookahead: float = field(default=0.05, metadata=spec(0.03, 0.2, "s"))
+    servo_gain: float = field(default=1000.0, metadata=spec(100.0, 2000.0))
+    gripper_close_above: float = field(default=0.6, metadata=spec(0.0, 1.0))
+    gripper_open_below: float = field(default=0.4, metadata=spec(0.0, 1.0))
+    gripper_speed: float = field(default=0.08, metadata=spec(0.0, 0.15, "m/s"))
+    gripper_force: float = field(default=40.0, metadata=spec(0.0, 235.0, "N"))
+    stop_timeout: float = field(default=2.0, metadata=spec(0.05, 30.0, "s", doc="stop(): give up after"))
+    servo_stop_decel: float = field(default=10.0, metadata=spec(0.1, 40.0, "rad/s^2"))
+    rest_speed: float = field(default=2e-3, metadata=spec(0.0, 0.1, "rad/s", doc="at rest below this"))
+    late_tolerance: float = field(default=0.25, metadata=spec(0.0, 10.0,
+                                  doc="a cycle starting later than this fraction of a period is late"))
+    telemetry_size: int = field(default=4096, metadata=spec(16, 1_000_000))
+    max_events: int = field(default=1000, metadata=spec(10, 1_000_000))
+
+    def validate(self) -> None:
+        validate(self)
+        if self.gripper_open_below >= self.gripper_close_above:
+            raise ConfigError(f"gripper_open_below = {self.gripper_open_below} must be below gripper_close_above = "
+                              f"{self.gripper_close_above} (the hysteresis band)")
+        if self.max_blend_time < self.blend_time:
+            raise ConfigError(f"max_blend_time = {self.max_blend_time} must be >= blend_time = {self.blend_time}")
+
+
+__all__ = ["ControllerConfig"]
