@@ -4,7 +4,8 @@ Each entry of FACTORIES is a context manager yielding a `Bench`: the three drive
 harness hooks a test needs (let time pass, fault injection, putting an object between the fingers).
 Benches of a single real driver (no arm to go with them) are listed only for their device's tests:
 GRIPPER_FACTORIES adds the real Robotiq driver against a loopback URCap server, CAMERA_FACTORIES the real
-RealSense driver on a librealsense software device; their other devices are None.
+RealSense driver on a librealsense software device, ARM_FACTORIES the real ur_rtde driver against a loopback fake
+UR controller (hil_tests/fakes/ur_controller.py); their other devices are None.
 Today only the sim twins in lock-step mode are listed (UR5e at 500 Hz and UR5/CB3 at 125 Hz); a real-hardware bench (ur_rtde + Robotiq socket +
 RealSense) is added as another `pytest.param(..., marks=pytest.mark.skipif(<no hardware>))` and must pass
 the same tests. Hooks a bench cannot provide are None and their tests skip (e.g. fault injection on
@@ -98,6 +99,49 @@ def robotiq_loopback_bench():
             gripper.disconnect()
 
 
+_UR_FAKE: list = []  # one fake controller process serves every ur_rtde-loopback test; reset before each
+
+
+@contextlib.contextmanager
+def ur_rtde_loopback_bench():
+    """The real URRtdeArm (ur_rtde's client) against a fake e-Series controller on loopback driving a UR5e twin in
+    realtime; `wait` counts controller (device) time and kicks the watchdog every cycle, as a control loop does."""
+    pytest.importorskip("rtde_control")
+    import atexit
+    import sys
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[1])
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    from hil_tests.fakes.ur_controller import FakeURController
+    from runtime.drivers.ur_rtde_arm import URRtdeArm, URRtdeConfig
+
+    if not _UR_FAKE:
+        _UR_FAKE.append(FakeURController())
+        atexit.register(_UR_FAKE[0].close)
+    fake = _UR_FAKE[0]
+    fake.reset()
+    arm = URRtdeArm(URRtdeConfig(fake.host))
+
+    def wait(seconds: float) -> None:
+        end = arm.state().timestamp_ns + seconds * 1e9
+        while arm.state().timestamp_ns < end:
+            arm.wait_period(arm.init_period())
+
+    def trigger_protective_stop() -> None:  # done once the controller reports it
+        fake.trigger_protective_stop()
+        deadline = time.monotonic() + 2.0
+        while not arm.state().is_protective_stopped and time.monotonic() < deadline:
+            arm.wait_period(arm.init_period())
+
+    try:
+        yield Bench(arm=arm, gripper=None, camera=None, wait=wait, safe_q=arm.state().q,
+                    trigger_protective_stop=trigger_protective_stop)
+    finally:
+        arm.close()
+
+
 @contextlib.contextmanager
 def realsense_software_bench():
     """The real RealSenseCamera driver (pipeline, syncer, align) on a librealsense software device at 30 fps."""
@@ -119,9 +163,10 @@ FACTORIES = [
 ]
 GRIPPER_FACTORIES = FACTORIES + [pytest.param(robotiq_loopback_bench, id="robotiq-loopback")]
 CAMERA_FACTORIES = FACTORIES + [pytest.param(realsense_software_bench, id="realsense-software")]
+ARM_FACTORIES = FACTORIES + [pytest.param(ur_rtde_loopback_bench, id="ur_rtde-loopback")]  # arm-only bench
 
 
-@pytest.fixture(params=FACTORIES)
+@pytest.fixture(params=ARM_FACTORIES)
 def bench(request):
     with request.param() as b:
         yield b
