@@ -126,7 +126,7 @@ def add_drawer_cabinet(spec, name: str, at: Placement, rgba, handle_rgba=(0.2, 0
 
 
 def add_lid_box(spec, name: str, at: Placement, rgba, inner_half=(0.06, 0.06, 0.03)) -> mujoco.MjsBody:
-    """An open box with a lid on a hinge along its +y edge; `{name}/hinge` is 0 closed, ~1.9 rad open."""
+    """An open box with a lid on a hinge along its +y edge; `{name}/hinge` is 0 closed, 1.5 rad (upright) open."""
     hx, hy, hz = inner_half
     wall = 0.006
     mat = _material(spec, f"{name}/mat", rgba)
@@ -134,12 +134,17 @@ def add_lid_box(spec, name: str, at: Placement, rgba, inner_half=(0.06, 0.06, 0.
     _add_open_box(body, name, inner_half, wall, mat)
     top = wall + 2 * hz
     lid = body.add_body(name=f"{name}/lid", pos=[0, hy + wall, top])
-    lid.add_joint(name=f"{name}/hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[-1, 0, 0], range=[0.0, 1.9],
+    lid.add_joint(name=f"{name}/hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[-1, 0, 0], range=[0.0, 1.5],
                   damping=0.05, armature=0.002)
     lid.add_geom(name=f"{name}/lid_plate", type=mujoco.mjtGeom.mjGEOM_BOX, size=[hx + wall, hy + wall, wall / 2],
                  pos=[0, -hy - wall, wall / 2], material=mat, mass=0.05)
-    lid.add_geom(name=f"{name}/lid_knob", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.012, 0.012, 0.012],
-                 pos=[0, -2 * hy - wall, wall + 0.012], material=mat, mass=0.005)
+    # A bar handle standing 4.5 cm off the lid's front edge, like the drawer's, for a top-down grasp.
+    front = -2 * hy - 2 * wall
+    lid.add_geom(name=f"{name}/lid_handle", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[0.007, 0.035, 0],
+                 pos=[0, front - 0.045, wall / 2], quat=[0.7071068, 0, 0.7071068, 0], material=mat, mass=0.005)
+    for sign, tag in ((1, "r"), (-1, "l")):
+        lid.add_geom(name=f"{name}/lid_post_{tag}", type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.004, 0.0225, 0.004],
+                     pos=[sign * 0.03, front - 0.0225, wall / 2], material=mat, mass=0.002)
     body.add_site(name=f"{name}/inside", type=mujoco.mjtGeom.mjGEOM_BOX, group=5, size=list(inner_half),
                   pos=[0, 0, wall + hz])
     return body
