@@ -15,6 +15,7 @@ BENCH_AREAS = {
     "bus": "runtime.bench_bus:run_bus_bench",
     "safety": "safety.bench:run_safety_bench",
     "policy": "policy.bench:run_policy_bench",
+    "runtime": "runtime.bench_runtime:run_runtime_bench",
 }
 
 
@@ -22,6 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     from datagen import cli as data_cli
     from datagen import generate_cli
     from policy import cli as policy_cli
+    from runtime import run_cli
     from sim import cli as sim_cli
 
     parser = argparse.ArgumentParser(
@@ -33,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     generate_cli.register(sub)
     data_cli.register(sub)
     policy_cli.register(sub)
+    run_cli.register(sub)
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
                            description="Run a benchmark area and print its figures; --json prints one JSON object.",

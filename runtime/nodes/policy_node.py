@@ -1,0 +1,262 @@
+"""policy_node: camera frames + robot state + the language command -> ActionChunks at the bundle's rate.
+
+    python -m runtime.nodes.policy_node --config '{"bundle": "policy/bundles/demo"}'
+
+Runs in its own process, so inference (tens of ms) never blocks the 500 Hz controller. At most control_hz (bundle manifest,
+10 Hz) times a second, on the monotonic clock:
+
+1. A tick is the arrival of a new frame of the first (primary) camera, at most control_hz a second, so
+   inference starts as soon as the observation exists (the camera rate sets the pace; with no frames the
+   node still wakes every 1/hz to notice staleness). Observation time t_obs = that frame's capture time.
+   The To-step history is taken at t_obs - k / hz (k = To-1 .. 0): per camera
+   the frame captured nearest each time, and the arm/gripper state whose timestamp is nearest (proprio:
+   tcp position, rot6d, gripper, q, as datagen.schema records it).
+2. Stale inputs (a camera with no frame captured within `max_frame_age_s`, or no robot state within
+   `max_state_age_s`) => no chunk and one StatusEvent "policy_stale_input" (on the transition; "policy_resumed"
+   when inputs are back). Without chunks the controller's plan runs out and its watchdog holds the arm.
+3. No accepted command => no chunk (idle).
+4. bundle.act -> the executed slice (bundle.execute) -> ActionChunk with times t_obs + (j + 1) / hz (the
+   recorded action at step t is the target of step t + 1), obs_time_ns = t_obs. Aligning to the capture time
+   (not the publish time) lets the controller drop what is already past and compensate its own latency.
+
+Language: a LanguageCommand is compared with every trained instruction (bundle.task_similarity, MiniLM
+cosine). Below `similarity_threshold` it is REFUSED: a StatusEvent "command_refused" names the closest
+instruction, the cosine and the known tasks/instructions, and nothing is executed; a refused command also
+clears the current one (the operator asked for something else: the arm holds rather than continuing an old
+task). An accepted one gives "command_accepted". Both messages start with "[command_id]" so `sudd say` can
+match its answer.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from runtime.nodes.common import BusSettings, NodeContext, cli_main, percentiles
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PolicyNodeConfig:
+    bus: BusSettings = field(default_factory=BusSettings)
+    bundle: str = ""
+    similarity_threshold: float = 0.7  # cosine to the nearest trained instruction below this: refused
+    max_frame_age_s: float = 0.35  # newest frame of any camera older than this: stale, no chunk
+    max_state_age_s: float = 0.25  # the robot node publishes at 100 Hz; GIL stalls there reach ~0.1 s
+    command: str = ""  # an initial command (as if received on the bus at start)
+    threads: int = 1  # onnxruntime intra-op threads (2 shared cores: 1 leaves one for the controller)
+    seed: int = 0
+    control_hz: float = 0.0  # 0: the bundle's manifest rate
+
+
+CONFIG = PolicyNodeConfig
+
+
+def resize_nearest(img: np.ndarray, H: int, W: int) -> np.ndarray:
+    """Centre-crop to the target aspect, then nearest-neighbour resize (a no-op at the right size)."""
+    h, w = img.shape[:2]
+    if (h, w) == (H, W):
+        return img
+    if h * W > w * H:  # too tall
+        ch, cw = max(1, round(w * H / W)), w
+    else:
+        ch, cw = h, max(1, round(h * W / H))
+    y0, x0 = (h - ch) // 2, (w - cw) // 2
+    ys = y0 + (np.arange(H) * ch // H)
+    xs = x0 + (np.arange(W) * cw // W)
+    return img[ys][:, xs]
+
+
+def proprio_of(state, grip_pos: float) -> np.ndarray:
+    """datagen.schema proprio (16,): tcp position 3, rot6d 6, gripper 1, q 6."""
+    from datagen.schema import rot6d
+    from sim.kinematics import rotvec_to_matrix
+
+    p = np.asarray(state.tcp_pose, dtype=float)
+    return np.concatenate([p[:3], rot6d(rotvec_to_matrix(p[3:])), [grip_pos], np.asarray(state.q, float)])
+
+
+class _History:
+    """(time_ns, item) pairs in time order, bounded; nearest-by-time lookup."""
+
+    def __init__(self, maxlen: int):
+        self.t: deque = deque(maxlen=maxlen)
+        self.v: deque = deque(maxlen=maxlen)
+        self.lock = threading.Lock()
+
+    def add(self, t: int, v) -> None:
+        with self.lock:
+            if self.t and t <= self.t[-1]:
+                return  # duplicate or out of order: keep the history monotonic
+            self.t.append(t)
+            self.v.append(v)
+
+    def newest(self):
+        with self.lock:
+            return (self.t[-1], self.v[-1]) if self.t else (None, None)
+
+    def nearest(self, t: int):
+        with self.lock:
+            ts = list(self.t)
+            if not ts:
+                return None, None
+            i = bisect.bisect_left(ts, t)
+            cand = [j for j in (i - 1, i) if 0 <= j < len(ts)]
+            j = min(cand, key=lambda j: abs(ts[j] - t))
+            return ts[j], self.v[j]
+
+
+def known_tasks_text(bundle) -> str:
+    return (f"known tasks: {', '.join(bundle.tasks) or '(none recorded)'}; trained instructions: "
+            + "; ".join(f"'{t}'" for t in bundle.instructions[:12])
+            + (f" (+{len(bundle.instructions) - 12} more)" if len(bundle.instructions) > 12 else ""))
+
+
+def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None, float]:
+    """(accepted, closest trained instruction, cosine)."""
+    best, cos = bundle.task_similarity(text)
+    return (best is not None and cos >= threshold), best, cos
+
+
+def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
+    from policy.bundle import Bundle
+    from runtime import bus as B
+    from runtime import messages as m
+
+    if not cfg.bundle:
+        raise ValueError("policy node: no bundle given")
+    bundle = Bundle.load(cfg.bundle, intra_op_num_threads=cfg.threads)
+    hz = cfg.control_hz or float(bundle.manifest["horizons"].get("control_hz", 10.0))
+    To, (H, W) = bundle.obs_horizon, bundle.image_size
+    dt_ns = int(round(1e9 / hz))
+    rng = np.random.default_rng(cfg.seed)
+    report: dict = {"chunks": 0, "ticks": 0, "stale_ticks": 0, "idle_ticks": 0, "refused": 0, "accepted": 0,
+                    "errors": 0}
+    infer_ms: deque = deque(maxlen=2000)
+    obs_to_pub_ms: deque = deque(maxlen=2000)
+    frames = {c: _History(64) for c in bundle.cameras}
+    states, grips = _History(256), _History(256)
+    commands: deque = deque(maxlen=8)
+    bus = cfg.bus.open()
+    try:
+        pub_chunk, pub_event = bus.publisher(B.POLICY_CHUNK), bus.publisher(B.SAFETY_EVENT)
+
+        def event(kind: str, severity: str, message: str, **values) -> None:
+            try:
+                pub_event.publish(m.StatusEvent(kind=kind, severity=severity, message=message[:1000],
+                                                values={k: float(v) for k, v in values.items()}))
+            except ValueError as exc:
+                log.warning("event %s not published: %s", kind, exc)
+
+        primary = bundle.cameras[0]
+        new_frame = threading.Event()  # a new frame of the primary camera: the policy's tick
+
+        def on_frame(msg: m.CameraFrame, cam: str) -> None:
+            if msg.color is not None:
+                frames[cam].add(msg.capture_ns, msg.color)
+                if cam == primary:
+                    new_frame.set()
+
+        for c in bundle.cameras:
+            bus.subscribe(B.camera_color(c), lambda msg, c=c: on_frame(msg, c))
+        bus.subscribe(B.ARM_STATE, lambda msg: states.add(msg.timestamp_ns, msg))
+        bus.subscribe(B.GRIPPER_STATE, lambda msg: grips.add(msg.timestamp_ns, float(msg.position)))
+        bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
+        if cfg.command:
+            commands.append(("initial", cfg.command))
+        current: dict = {"text": None, "emb": None}
+        stale_state = None
+        ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz, "tasks": bundle.tasks,
+                   "instructions": len(bundle.instructions)})
+        last_infer = -1.0
+        while not ctx.should_stop():
+            got = new_frame.wait(1.0 / hz)
+            new_frame.clear()
+            if got and time.monotonic() - last_infer < 0.9 / hz:  # camera faster than the policy: pace
+                ctx.sleep_until(last_infer + 1.0 / hz)
+                if ctx.should_stop():
+                    break
+            while commands:
+                cid, text = commands.popleft()
+                ok, best, cos = judge_command(bundle, text, cfg.similarity_threshold)
+                tag = f"[{cid}] " if cid else ""
+                if ok:
+                    report["accepted"] += 1
+                    current.update(text=text, emb=bundle.embed(text))
+                    event("command_accepted", "info", f"{tag}accepted '{text}' (closest trained instruction "
+                                                      f"'{best}', cosine {cos:.2f})", cosine=cos)
+                else:
+                    report["refused"] += 1
+                    current.update(text=None, emb=None)
+                    why = ("the bundle records no trained instructions" if best is None else
+                           f"closest trained instruction '{best}' has cosine {cos:.2f} < "
+                           f"{cfg.similarity_threshold:.2f}")
+                    event("command_refused", "warning", f"{tag}refused '{text}': {why}; not executed. "
+                                                        f"{known_tasks_text(bundle)}",
+                          cosine=cos, threshold=cfg.similarity_threshold)
+            report["ticks"] += 1
+            now_ns = time.monotonic_ns()
+            newest = {c: h.newest()[0] for c, h in frames.items()}
+            st_t, st = states.newest()
+            problem = None
+            missing = [c for c, t in newest.items() if t is None or now_ns - t > cfg.max_frame_age_s * 1e9]
+            if missing:
+                problem = f"no frame newer than {cfg.max_frame_age_s:.2f} s from camera(s) {', '.join(missing)}"
+            elif st_t is None or now_ns - st_t > cfg.max_state_age_s * 1e9:
+                problem = f"no robot state newer than {cfg.max_state_age_s:.2f} s"
+            if problem != stale_state:
+                if problem:
+                    event("policy_stale_input", "warning", f"{problem}: no chunks until inputs are fresh "
+                                                           "(the controller holds)")
+                elif stale_state is not None:
+                    event("policy_resumed", "info", "inputs are fresh again")
+                stale_state = problem
+            if problem:
+                report["stale_ticks"] += 1
+            elif current["emb"] is None:
+                report["idle_ticks"] += 1
+            elif got:
+                last_infer = time.monotonic()
+                try:
+                    t_obs = newest[primary]
+                    times = [t_obs - (To - 1 - k) * dt_ns for k in range(To)]
+                    imgs = {c: np.stack([resize_nearest(frames[c].nearest(t)[1], H, W) for t in times])
+                            for c in bundle.cameras}
+                    prop = []
+                    for t in times:
+                        _, s = states.nearest(t)
+                        _, g = grips.nearest(t)
+                        prop.append(proprio_of(s, 0.0 if g is None else g))
+                    t0 = time.perf_counter()
+                    a = bundle.act(imgs, np.asarray(prop, np.float32), current["emb"], rng=rng)[bundle.execute]
+                    infer_ms.append((time.perf_counter() - t0) * 1e3)
+                    tk = (t_obs + dt_ns * (1 + np.arange(len(a)))).astype(np.int64)
+                    pub_chunk.publish(m.ActionChunk(actions=a.astype(np.float64), times_ns=tk, obs_time_ns=int(t_obs)))
+                    obs_to_pub_ms.append((time.monotonic_ns() - t_obs) * 1e-6)
+                    report["chunks"] += 1
+                except Exception as exc:  # one bad observation must not end the node
+                    report["errors"] += 1
+                    log.exception("policy tick failed")
+                    if report["errors"] <= 3:
+                        event("policy_error", "error", f"inference failed: {exc!r}")
+        report["stop_reason"] = ctx.stop_reason
+    finally:
+        report["inference_ms"] = percentiles(infer_ms)
+        report["obs_to_publish_ms"] = percentiles(obs_to_pub_ms)
+        bus.close()
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    return cli_main(__name__, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

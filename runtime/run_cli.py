@@ -1,0 +1,172 @@
+"""`sudd run` (the whole runtime stack) and `sudd say` (a language command on the bus)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import uuid
+from pathlib import Path
+
+DEFAULT_BUNDLE = Path("policy/bundles/demo")
+BUNDLE_ENV = "SUDD_POLICY"
+
+RUN_EPILOG = """\
+examples:
+  sudd run --sim --policy out/bundle --duration 30
+  sudd run --sim --task stack --seed 3 --policy out/bundle --command "put the green block on the blue block"
+  sudd run --robot-ip 192.168.1.10 --camera-serial scene=123456789012 --camera-serial wrist=234567890123 \\
+           --policy out/bundle                        # connects and holds: no motion
+  sudd run ... --allow-motion                         # the policy may move the arm (through safety)
+
+policy bundle: --policy, else $SUDD_POLICY, else policy/bundles/demo if it exists. Make one with
+  sudd train --data out/data --out out/run  &&  sudd export out/run out/bundle
+
+hardware bring-up checklist (before --allow-motion):
+  1. E-stop within reach and tested; workspace clear; speed slider at 10-30 % on the teach pendant.
+  2. Robot in Remote Control, ur_rtde reachable (ping ROBOT_IP; ports 30004/29999 open); the Robotiq
+     URCap installed and its socket on port 63352.
+  3. Safety limits file reviewed (safety/limits_example.toml): workspace box, keep-out boxes, TCP speed.
+  4. Cameras: `rs-enumerate-devices` lists each serial; the scene camera at its calibrated pose
+     (sudd calibration); the hand-eye result loaded.
+  5. First run WITHOUT --allow-motion: state and frames flow (watch `sudd say` answers and the events);
+     the arm must not move.
+  6. Then --allow-motion with a trained task; keep a hand on the E-stop. Ctrl-C = controlled stop first.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    run = sub.add_parser("run", help="run the runtime: robot + policy (+ camera) nodes, on the sim or hardware",
+                         description="Start every node as its own process over real Zenoh sessions, wait for "
+                                     "them, run, then stop: the robot node's controlled stop first (Ctrl-C too).",
+                         epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    mode = run.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--sim", action="store_true", help="the sim twins (realtime SimRig, sim cameras)")
+    mode.add_argument("--robot-ip", metavar="IP", help="a real UR (ur_rtde) with a Robotiq 2F-85 on its URCap")
+    run.add_argument("--task", default="pick_place", help="sim task family (default pick_place)")
+    run.add_argument("--seed", type=int, default=0, help="sim episode seed")
+    run.add_argument("--dr", default="off", help="sim domain randomization preset or TOML (default off)")
+    run.add_argument("--policy", metavar="BUNDLE", help=f"policy bundle dir (default ${BUNDLE_ENV} or {DEFAULT_BUNDLE})")
+    run.add_argument("--command", metavar="TEXT", help="language command (sim default: the episode's instruction)")
+    run.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: "
+                     "until Ctrl-C; sim: also stops at task success)")
+    run.add_argument("--camera-serial", action="append", default=[], metavar="NAME=SERIAL",
+                     help="hardware: RealSense serial per bundle camera (scene=..., wrist=...)")
+    run.add_argument("--allow-motion", action="store_true", help="hardware: let the policy move the arm")
+    run.add_argument("--hub", default="tcp/127.0.0.1:7447", help="the launcher's bus endpoint (sudd say connects)")
+    run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
+    run.add_argument("--json", action="store_true", help="print the final reports as JSON")
+    run.set_defaults(func=_run)
+
+    say = sub.add_parser("say", help="send a language command to a running `sudd run` and print the answer",
+                         epilog='example:\n  sudd say "put the red block in the left bin"',
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    say.add_argument("text", help="the command")
+    say.add_argument("--robot", default="ur5", help="robot name in the bus keys")
+    say.add_argument("--connect", default="tcp/127.0.0.1:7447", help="the launcher's hub endpoint")
+    say.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the policy node's answer")
+    say.set_defaults(func=_say)
+
+
+def resolve_bundle(arg: str | None) -> Path:
+    for cand in (arg, os.environ.get(BUNDLE_ENV), str(DEFAULT_BUNDLE) if DEFAULT_BUNDLE.is_dir() else None):
+        if cand:
+            p = Path(cand)
+            if not (p / "manifest.json").is_file():
+                raise ValueError(f"{p} is not a policy bundle (no manifest.json)")
+            return p
+    raise ValueError("no policy bundle: pass --policy BUNDLE (or set $SUDD_POLICY). No trained bundle ships yet; "
+                     "make one with `sudd datagen ...`, `sudd train --data DATA --out RUN` and "
+                     "`sudd export RUN BUNDLE`")
+
+
+def _run(args) -> int:
+    from runtime.launch import Launcher, NodeFailed, hardware_stack, sim_stack
+
+    bundle = resolve_bundle(args.policy)
+    if args.sim:
+        specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr)
+    else:
+        serials = dict(s.split("=", 1) for s in args.camera_serial if "=" in s)
+        specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion)
+    la = Launcher(specs, hub=args.hub, robot_name=args.robot)
+    succeeded = {"v": False}
+    events: list = []
+    t0 = time.monotonic()
+    with la:
+        try:
+            info = la.wait_ready()
+        except NodeFailed as exc:
+            print(f"sudd run: a node failed to start: {exc}", file=sys.stderr)
+            return 1
+        from runtime import bus as B
+
+        def on_event(msg) -> None:
+            events.append(msg)
+            if msg.kind == "task_success":
+                succeeded["v"] = True
+            if msg.severity in ("warning", "error", "critical") or msg.kind.startswith("command") \
+                    or msg.kind.startswith("task"):
+                print(f"[{msg.severity}] {msg.kind}: {msg.message}", file=sys.stderr)
+
+        la.bus.subscribe(B.SAFETY_EVENT, on_event)
+        command = args.command or info.get("robot", {}).get("instruction") or ""
+        print(f"sudd run: ready in {time.monotonic() - t0:.1f} s; hub {la.hub}; "
+              f"command: {command or '(none: use sudd say)'}", file=sys.stderr)
+        if command:
+            la.say(command, "run")
+        reason = la.monitor(duration_s=args.duration, until=(lambda: succeeded["v"]) if args.sim else None)
+    rob, pol = la.reports.get("robot", {}), la.reports.get("policy", {})
+    lat = rob.get("latency_ms", {})
+    summary = {"stop_reason": reason, "task_success": rob.get("task_success"), "at_rest": rob.get("at_rest"),
+               "chunks": {"published": pol.get("chunks"), "received": rob.get("chunks_received"),
+                          "accepted": rob.get("chunks_accepted"), "rejected": rob.get("chunks_rejected")},
+               "latency_ms": {"obs_to_publish": lat.get("publish"), "obs_to_receive": lat.get("receive"),
+                              "obs_to_accepted": lat.get("accepted"), "inference": pol.get("inference_ms")},
+               "controller": {k: rob.get("controller_summary", {}).get(k)
+                              for k in ("rate_hz", "period_p99_ms", "jitter_p99_ms", "on_time")},
+               "bypass": rob.get("bypass"), "exit_codes": la.exit_codes}
+    if args.json:
+        print(json.dumps({"summary": summary, "reports": la.reports}, indent=2, default=str))
+    else:
+        print(f"stop: {reason}")
+        print(f"task success: {summary['task_success']}   arm at rest: {summary['at_rest']}")
+        print(f"chunks: {summary['chunks']}")
+        for k, v in summary["latency_ms"].items():
+            if v and v.get("n"):
+                print(f"latency {k:16s} p50 {v['p50']:.1f} ms  p99 {v['p99']:.1f} ms  (n={v['n']})")
+        print(f"controller: {summary['controller']}")
+    crashed = [n for n, c in la.exit_codes.items() if c not in (0, None)]
+    return 1 if crashed else 0
+
+
+def _say(args) -> int:
+    from runtime import bus as B
+    from runtime import messages as m
+    from runtime.bus import Bus, BusConfig
+
+    cid = uuid.uuid4().hex[:12]
+    answer: list = []
+    with Bus.open(BusConfig(robot=args.robot, listen=(), connect=(args.connect,))) as bus:
+        if not bus.wait_for_peers(1, min(args.timeout, 5.0)):
+            print(f"sudd say: nothing answers at {args.connect} (is `sudd run` up?)", file=sys.stderr)
+            return 2
+        bus.subscribe(B.SAFETY_EVENT, lambda msg: answer.append(msg)
+                      if msg.kind.startswith("command_") and msg.message.startswith(f"[{cid}]") else None)
+        pub = bus.publisher(B.LANGUAGE_COMMAND)
+        pub.wait_matched(min(args.timeout, 5.0))
+        pub.publish(m.LanguageCommand(text=args.text, command_id=cid))
+        deadline = time.monotonic() + args.timeout
+        while not answer and time.monotonic() < deadline:
+            time.sleep(0.02)
+    if not answer:
+        print(f"sent '{args.text}'; no answer from a policy node within {args.timeout} s")
+        return 1
+    ev = answer[0]
+    print(f"{'ACCEPTED' if ev.kind == 'command_accepted' else 'REFUSED'}: {ev.message[len(cid) + 3:]}")
+    return 0 if ev.kind == "command_accepted" else 3
+
+
+__all__ = ["register", "resolve_bundle"]

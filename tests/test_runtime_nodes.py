@@ -1,0 +1,75 @@
+"""Runtime nodes without processes: no torch in the runtime, the bundle requirement, small helpers."""
+
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from runtime.nodes.common import config_from_dict, config_to_dict
+from runtime.nodes.policy_node import PolicyNodeConfig, proprio_of, resize_nearest
+from runtime.nodes.robot_node import GuardedArm, GuardedFilter, RobotNodeConfig
+
+
+def test_runtime_never_imports_torch():
+    mods = ["runtime.nodes.policy_node", "runtime.nodes.robot_node", "runtime.nodes.camera_node", "runtime.launch",
+            "runtime.run_cli", "runtime.bench_runtime", "runtime.cli"]
+    code = "import sys\n" + "".join(f"import {m}\n" for m in mods) + \
+        "import runtime.cli as c; c.build_parser()\n" \
+        "bad = [m for m in sys.modules if m == 'torch' or m.startswith('torch.')]\nassert not bad, bad[:5]\n"
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_config_round_trip():
+    cfg = RobotNodeConfig(task="stack", seed=3, cameras=("scene",), image_size=(96, 96))
+    assert config_from_dict(RobotNodeConfig, config_to_dict(cfg)) == cfg
+    p = PolicyNodeConfig(bundle="x", similarity_threshold=0.5)
+    assert config_from_dict(PolicyNodeConfig, config_to_dict(p)) == p
+    with pytest.raises(ValueError, match="no field"):
+        config_from_dict(PolicyNodeConfig, {"nope": 1})
+
+
+def test_resize_and_proprio():
+    img = np.arange(480 * 640 * 3, dtype=np.uint32).astype(np.uint8).reshape(480, 640, 3)
+    out = resize_nearest(img, 128, 128)
+    assert out.shape == (128, 128, 3) and out.dtype == np.uint8
+    assert resize_nearest(out, 128, 128) is out
+    s = SimpleNamespace(tcp_pose=np.array([0.1, 0.2, 0.3, np.pi, 0, 0]), q=np.arange(6.0))
+    p = proprio_of(s, 0.5)
+    assert p.shape == (16,) and np.allclose(p[:3], [0.1, 0.2, 0.3]) and p[9] == 0.5
+    assert np.allclose(p[3:9], [1, 0, 0, 0, -1, 0], atol=1e-9) and np.allclose(p[10:], np.arange(6.0))
+
+
+def test_guarded_arm_passes_only_the_filter_output():
+    sent = []
+    arm = SimpleNamespace(servo_j=lambda q, *a: sent.append(q) or True)
+    filt = GuardedFilter(SimpleNamespace(step=lambda *a: SimpleNamespace(q=np.ones(6)), dt=0.002))
+    g = GuardedArm(arm, filt)
+    assert not g.servo_j(np.ones(6))  # before any filter step: nothing may pass
+    filt.step()
+    assert g.servo_j(np.ones(6)) and not g.servo_j(np.zeros(6))
+    assert (g.servo_sent, g.bypass, len(sent)) == (1, 2, 1) and filt.dt == 0.002
+
+
+def test_run_requires_a_policy(monkeypatch, tmp_path, capsys):
+    from runtime import run_cli
+    from runtime.cli import main
+
+    monkeypatch.delenv(run_cli.BUNDLE_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--sim", "--duration", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--policy" in err and "sudd train" in err and "sudd export" in err
+
+
+def test_help_documents_hardware_and_say(capsys):
+    from runtime.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    out = capsys.readouterr().out
+    assert "--robot-ip" in out and "--allow-motion" in out and "checklist" in out and "--camera-serial" in out
+    with pytest.raises(SystemExit):
+        main(["say", "--help"])
+    assert "--connect" in capsys.readouterr().out

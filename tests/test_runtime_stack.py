@@ -1,0 +1,171 @@
+"""The runtime stack as `sudd run --sim` runs it: real node processes, real Zenoh sessions, an untrained
+`small` bundle (exported once per session, actions within 3 cm of home) and the realtime sim twins.
+
+Each test starts the stack (~8 s on 2 shared cores), runs a few seconds, and checks the reports the nodes
+hand back at exit plus what a test subscriber on the launcher's hub saw. Every run must end with nothing
+left running and the arm at rest.
+"""
+
+import math
+import os
+import signal
+import struct
+import time
+
+import numpy as np
+import pytest
+
+from runtime import bus as B
+from runtime import messages as m
+from runtime.bench_runtime import episode_instruction, make_test_bundle
+from runtime.launch import Launcher, sim_stack
+
+TASK, SEED = "pick_place", 0
+
+
+@pytest.fixture(scope="session")
+def bundle(tmp_path_factory):
+    ins = episode_instruction(TASK, SEED)
+    return make_test_bundle(tmp_path_factory.mktemp("runtime") / "bundle", [ins, "stack the red block on the blue block"])
+
+
+class Watch:
+    """What a test subscriber on the hub sees: events, arm states, chunks (with arrival times)."""
+
+    def __init__(self, la):
+        self.events, self.states, self.chunks, self.frames = [], [], [], 0
+        la.bus.subscribe(B.SAFETY_EVENT, self.events.append)
+        la.bus.subscribe(B.ARM_STATE, lambda s: self.states.append((time.monotonic(), s)))
+        la.bus.subscribe(B.POLICY_CHUNK, lambda c: self.chunks.append(time.monotonic()))
+        la.bus.subscribe(B.camera_color("scene"), self._frame)
+
+    def _frame(self, f):
+        self.frames += 1
+
+    def kinds(self):
+        return [e.kind for e in self.events]
+
+    def wait(self, pred, timeout_s):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if pred():
+                return True
+            time.sleep(0.02)
+        return False
+
+
+def _start(bundle, **robot):
+    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, **robot), hub="tcp/127.0.0.1:0")
+    la.start()
+    info = la.wait_ready(90)
+    return la, info, Watch(la)
+
+
+def _clean_exit(la):
+    assert la.alive() == [], la.alive()
+    for p in la.procs.values():
+        assert p.exitcode is not None
+    rob = la.reports["robot"]
+    assert rob["at_rest"] is True and rob["bypass"] == 0, rob
+    assert rob["final_qd_max"] < 0.05  # read after servo_stop; at_rest above is the controller's own check
+    return rob
+
+
+def _nan_chunk_bytes() -> bytes:
+    now = time.monotonic_ns()
+    c = m.ActionChunk(actions=np.full((2, 10), 12345.0), times_ns=np.array([now, now + 10**8]), obs_time_ns=now)
+    return c.encode(seq=1, stamp_ns=now, source_id=7).replace(struct.pack("<d", 12345.0), struct.pack("<d", math.nan))
+
+
+def test_end_to_end_refusal_and_malformed_chunks(bundle):
+    la, info, w = _start(bundle)
+    try:
+        la.say(info["robot"]["instruction"], "t1")
+        assert w.wait(lambda: len(w.chunks) >= 10, 20), (len(w.chunks), w.kinds())
+        raw = la.bus.publisher(B.POLICY_CHUNK)
+        for payload in (b"garbage", _nan_chunk_bytes(), b"SUDD" + bytes(40)):
+            raw.put_raw(payload)
+        far = time.monotonic_ns()  # well-formed but unreachable: the controller must refuse it (event)
+        raw.publish(m.ActionChunk(actions=np.tile([3.0, 3.0, 3.0, 1, 0, 0, 0, -1, 0, 0], (2, 1)),
+                                  times_ns=np.array([far + 10**8, far + 2 * 10**8]), obs_time_ns=far))
+        la.say("make me a coffee", "t2")
+        assert w.wait(lambda: "command_refused" in w.kinds(), 10), w.kinds()
+        time.sleep(0.5)
+    finally:
+        reason = la.monitor(duration_s=0.0)
+    assert reason == "duration over"
+    rob = _clean_exit(la)
+    pol = la.reports["policy"]
+    assert all(c == 0 for c in la.exit_codes.values()), la.exit_codes
+    # frames and chunks flowed, the controller executed them through safety and the arm moved
+    assert w.frames >= 10 and min(rob["frames_published"].values()) >= 10
+    assert pol["chunks"] >= 10 and pol["accepted"] == 1 and pol["refused"] == 1
+    assert rob["chunks_accepted"] >= 8 and rob["servo_sent"] > 500 and rob["moved_rad"] > 1e-4, rob
+    # malformed payloads were dropped at the bus edge: counted, never submitted
+    assert sum(rob["chunk_decode_errors"].values()) >= 3, rob["chunk_decode_errors"]
+    assert rob["events"].get("chunk_malformed", 0) == 0
+    assert rob["chunks_rejected"] >= 1  # the unreachable one
+    refusal = next(e for e in w.events if e.kind == "command_refused")
+    assert refusal.message.startswith("[t2] refused 'make me a coffee'")
+    assert "known tasks: pick_place" in refusal.message and info["robot"]["instruction"] in refusal.message
+    accepted = next(e for e in w.events if e.kind == "command_accepted")
+    assert accepted.message.startswith("[t1] accepted")
+    lat = rob["latency_ms"]["receive"]
+    print(f"\nobs->receive p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms; controller",
+          {k: round(v, 3) for k, v in rob["controller_summary"].items() if isinstance(v, float)})
+
+
+def test_killed_policy_stops_the_stack_robot_first(bundle):
+    la, info, w = _start(bundle)
+    try:
+        la.say(info["robot"]["instruction"], "k")
+        assert w.wait(lambda: len(w.chunks) >= 5, 20)
+        os.kill(la.procs["policy"].pid, signal.SIGKILL)
+        reason = la.monitor(duration_s=20)
+    finally:
+        la.shutdown("test end")
+    assert "policy" in reason and la.failed == ["policy"]
+    rob = _clean_exit(la)
+    assert la.exit_codes["robot"] == 0 and la.exit_codes["policy"] == -signal.SIGKILL
+    assert rob["events"].get("controlled_stop", 0) >= 1 and rob["stop_reason"] == "stop requested"
+    assert la.robot_stopped_after_s < 8.0
+
+
+def test_dead_camera_stops_chunks_and_the_arm_holds(bundle):
+    la, info, w = _start(bundle, fault_camera_stop_s=6.0)
+    try:
+        la.say(info["robot"]["instruction"], "c")
+        # Chunks must flow before the camera dies (a loaded machine may need seconds to start inference).
+        assert w.wait(lambda: len(w.chunks) >= 3, 20), len(w.chunks)
+        stale_before = w.kinds().count("policy_stale_input")  # start-up (no frame yet) may report one
+        assert w.wait(lambda: w.kinds().count("policy_stale_input") > stale_before, 20), w.kinds()
+        t_stale = time.monotonic()
+        n_at_stale = len(w.chunks)
+        time.sleep(2.0)
+        late_states = [s for t, s in w.states if t > t_stale + 1.2]
+    finally:
+        la.monitor(duration_s=0.0)
+    rob = _clean_exit(la)
+    assert n_at_stale >= 3 and len(w.chunks) <= n_at_stale + 1  # at most one in flight
+    stale = [e for e in w.events if e.kind == "policy_stale_input"][-1]
+    assert "no frame newer than" in stale.message
+    assert late_states and max(float(np.max(np.abs(s.qd))) for s in late_states) < 0.01  # holding
+    assert rob["camera_stopped_at"] >= 6.0
+
+
+def test_injected_protective_stop_holds_without_crash(bundle):
+    la, info, w = _start(bundle, fault_protective_stop_s=2.5)
+    try:
+        la.say(info["robot"]["instruction"], "p")
+        assert w.wait(lambda: "protective_stop" in w.kinds(), 15), w.kinds()
+        t_ps = time.monotonic()
+        time.sleep(1.5)
+        after = [s for t, s in w.states if t > t_ps + 0.2]
+        assert la.alive() == ["robot", "policy"]
+    finally:
+        la.monitor(duration_s=0.0)
+    rob = _clean_exit(la)
+    assert all(c == 0 for c in la.exit_codes.values())
+    assert rob["protective_stopped"] and rob["events"].get("protective_stop", 0) >= 1
+    assert after and max(float(np.max(np.abs(s.qd))) for s in after) < 1e-3
+    assert any(int(s.safety_mode) != int(m.SafetyMode.NORMAL) for s in after)
