@@ -6,12 +6,17 @@
 * chain: `SafetyFilter.step` without the collision guard on a realistic stream (a smooth multi-joint motion
   at up to ~0.15 m/s TCP, measured joints one cycle behind), 20k cycles; almost every cycle passes unchanged.
 * chain_limited: the same on an adversarial stream (jumps, out-of-workspace targets, NaN bursts), where the
-  filter intervenes most cycles (projection + IK, braking checks).
+  filter intervenes most cycles (projection + IK, braking checks), 5k cycles.
+* chain_adversarial: the worst-case figures of that stream, the thread's CPU time per cycle, each statistic
+  the median over ADVERSARIAL_RUNS runs (chain_limited is the first); `ik_fallback_events` counts the
+  episodes where the bounded IK found no target and the stop policy was followed instead. Its target: a
+  hostile stream must not make the filter overrun the 2 ms cycle (CPU p99 <= 300 us, max <= 1 ms).
 * collision: `CollisionGuard.check` (current + predicted pose), at poses along the realistic stream.
 
 Times are time.perf_counter_ns around the call (wall clock: what the control loop sees, including any
 preemption on a busy machine), with the garbage collector off during the timed loops (as a real-time control
-loop should run); chain sections also give the thread's CPU time (cpu_*), which other load does not inflate.
+loop should run); chain sections also give the thread's CPU time (cpu_*), which preemption does not inflate
+(on a shared virtual machine it still varies with other load: compare figures taken at a similar load).
 `*_cycle_fraction` is the wall time over the UR5e's 2 ms control period.
 """
 
@@ -29,7 +34,10 @@ import numpy as np
 
 CYCLE_S = 0.002  # UR5e control period
 TARGET_CHAIN_P99_US = 50.0
+TARGET_ADVERSARIAL_CPU_P99_US = 300.0
+TARGET_ADVERSARIAL_CPU_MAX_US = 1000.0
 TARGET_COLLISION_P99_US = 1000.0
+ADVERSARIAL_RUNS = 5
 HOME = (-1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
 
 
@@ -83,7 +91,7 @@ def _time_chain(filt, targets, dt) -> tuple[dict, float]:
     meas = np.asarray(HOME, dtype=float)
     ns = np.empty(len(targets), dtype=np.int64)
     cpu = np.empty(len(targets), dtype=np.int64)
-    passed = 0
+    passed = fallbacks = 0
     perf, thread = time.perf_counter_ns, time.thread_time_ns
     gc_was = gc.isenabled()
     gc.disable()
@@ -97,13 +105,42 @@ def _time_chain(filt, targets, dt) -> tuple[dict, float]:
             cpu[k] = thread() - c0
             meas = r.q
             passed += r.mode == "pass"
+            if r.events:
+                fallbacks += any(e.kind == "ik_fallback" and e.end is None for e in r.events)
     finally:
         if gc_was:
             gc.enable()
     stats = _stats(ns)
     stats["cpu_p50_us"] = round(float(np.percentile(cpu, 50)) / 1e3, 2)
     stats["cpu_p99_us"] = round(float(np.percentile(cpu, 99)) / 1e3, 2)
+    stats["cpu_max_us"] = round(float(cpu.max()) / 1e3, 2)
+    stats["ik_fallback_events"] = fallbacks
     return stats, passed / len(targets)
+
+
+def _adversarial(limits, n: int, runs: int, dt: float) -> tuple[dict, dict]:
+    """(chain_limited: the first run, chain_adversarial: CPU figures, medians over `runs` fresh filters)."""
+    from safety.filter import SafetyFilter
+
+    targets = adversarial_stream(n)
+    per_run = []
+    first = None
+    for _ in range(runs):
+        stats, pass_frac = _time_chain(SafetyFilter(limits, collision=False), targets, dt)
+        if first is None:
+            first = dict(stats, pass_fraction=round(pass_frac, 4))
+            first["p99_cycle_fraction"] = round(first["p99_us"] * 1e-6 / dt, 5)
+        per_run.append(stats)
+    med = {key: round(float(np.median([r[key] for r in per_run])), 2) for key in ("cpu_p50_us", "cpu_p99_us",
+                                                                               "cpu_max_us")}
+    adv = {"cycles": n, "runs": runs, **med,
+           "cpu_max_us_worst_run": max(r["cpu_max_us"] for r in per_run),
+           "cpu_p99_cycle_fraction": round(med["cpu_p99_us"] * 1e-6 / dt, 5),
+           "cpu_max_cycle_fraction": round(med["cpu_max_us"] * 1e-6 / dt, 5),
+           "ik_fallback_events": first["ik_fallback_events"],
+           "per_run": [{key: r[key] for key in ("cpu_p50_us", "cpu_p99_us", "cpu_max_us", "p99_us", "max_us")}
+                       for r in per_run]}
+    return first, adv
 
 
 def run_safety_bench(quick: bool = False) -> dict:
@@ -131,10 +168,8 @@ def run_safety_bench(quick: bool = False) -> dict:
     chain["p50_cycle_fraction"] = round(chain["p50_us"] * 1e-6 / dt, 5)
     chain["p99_cycle_fraction"] = round(chain["p99_us"] * 1e-6 / dt, 5)
     figures["chain"] = chain
-    lim_stats, pass_frac = _time_chain(SafetyFilter(limits, collision=False), adversarial_stream(n // 4), dt)
-    lim_stats["pass_fraction"] = round(pass_frac, 4)
-    lim_stats["p99_cycle_fraction"] = round(lim_stats["p99_us"] * 1e-6 / dt, 5)
-    figures["chain_limited"] = lim_stats
+    figures["chain_limited"], adv = _adversarial(limits, n // 4, 2 if quick else ADVERSARIAL_RUNS, dt)
+    figures["chain_adversarial"] = adv
 
     from safety.collision import CollisionGuard
 
@@ -160,8 +195,13 @@ def run_safety_bench(quick: bool = False) -> dict:
                 "p99_cycle_fraction": round(col["p99_us"] * 1e-6 / dt, 5),
                 "amortized_p50_cycle_fraction": round(col["p50_us"] * 1e-6 / dt / every, 5)})
     figures["collision"] = col
-    figures["targets"] = {"chain_p99_us": TARGET_CHAIN_P99_US, "collision_p99_us": TARGET_COLLISION_P99_US}
+    figures["targets"] = {"chain_p99_us": TARGET_CHAIN_P99_US,
+                          "chain_adversarial_cpu_p99_us": TARGET_ADVERSARIAL_CPU_P99_US,
+                          "chain_adversarial_cpu_max_us": TARGET_ADVERSARIAL_CPU_MAX_US,
+                          "collision_p99_us": TARGET_COLLISION_P99_US}
     figures["meets_targets"] = {"chain": chain["p99_us"] <= TARGET_CHAIN_P99_US,
+                                "chain_adversarial": adv["cpu_p99_us"] <= TARGET_ADVERSARIAL_CPU_P99_US
+                                and adv["cpu_max_us"] <= TARGET_ADVERSARIAL_CPU_MAX_US,
                                 "collision": col["p99_us"] <= TARGET_COLLISION_P99_US}
     return figures
 

@@ -24,7 +24,9 @@ KINDS = {
     "out_of_order_command": (WARNING, "command older than one already used (s); ignored, holding"),
     "future_command": (WARNING, "command time ahead of the clock by more than allowed (s); holding"),
     "workspace": (WARNING, "TCP target moved onto the allowed workspace (m)"),
-    "unreachable": (ERROR, "projected TCP target has no IK solution on this branch; holding"),
+    "unreachable": (ERROR, "target cannot be moved into the workspace; holding"),
+    "ik_fallback": (WARNING, "no IK solution on the target's branch within the Newton budget; stop policy "
+                             "(brake, then hold) instead (iterations spent / budget)"),
     "joint_position": (WARNING, "joint target beyond its position limit (rad)"),
     "joint_braking": (WARNING, "joint slowed to stop before its position limit (rad/s)"),
     "velocity": (INFO, "joint velocity scaled to its limit (ratio requested / allowed)"),

@@ -25,11 +25,7 @@ def vec6(x):
             vals = [float(e) for e in vals]
     except (TypeError, ValueError):
         return None
-    isfinite = math.isfinite
-    for e in vals:
-        if not isfinite(e):
-            return None
-    return vals
+    return vals if all(map(math.isfinite, vals)) else None
 
 
 def parse_pose(x):

@@ -28,6 +28,7 @@ from __future__ import annotations
 PASS, SCALED, STOP = 0, 1, 2
 SHRINK = 1e-6
 _BISECT = 44
+FAR_MARGIN = 1e-9  # rad: a joint counts as far from its limits with at least this much to spare
 
 
 class JointLimiter:
@@ -47,6 +48,11 @@ class JointLimiter:
         self.snap_a = [0.5 * self.J[i] * dt for i in range(n)]
         self.w = [self.A[i] / self.c[i] for i in range(n)]  # speed below which the stop is exponential
         self.half_inv_j = [0.5 / self.J[i] for i in range(n)]
+        # stop_bound's constants per joint: J, A, c, w, 2J, 2A, w^2, w / c, dt
+        self._sb = [(self.J[i], self.A[i], self.c[i], self.w[i], 2.0 * self.J[i], 2.0 * self.A[i],
+                     self.w[i] * self.w[i], self.w[i] / self.c[i], dt) for i in range(n)]
+        vmax = [self.V[i] + self.A[i] * dt for i in range(n)]  # |v'| bound from |v| <= V
+        self._far_reach = [vmax[i] * dt + self.stop_bound(i, vmax[i], self.A[i]) + FAR_MARGIN for i in range(n)]
         # scratch lists reused every cycle
         self.lo = [0.0] * n
         self.hi = [0.0] * n
@@ -59,21 +65,20 @@ class JointLimiter:
     # ---- bounds ---------------------------------------------------------------------------------------
     def stop_bound(self, i: int, v: float, a: float) -> float:
         """Upper bound of the + direction travel of joint i under the stop policy from velocity v, accel a."""
-        J = self.J[i]
+        J, A, c, w, two_j, two_a, w2, w_c, dt = self._sb[i]
         ap = a if a > 0.0 else 0.0
-        vp = v + ap * ap / (2.0 * J)
+        vp = v + ap * ap / two_j
         if vp <= 0.0:
             return 0.0
-        A, c, w = self.A[i], self.c[i], self.w[i]
         k = c * vp
         if k > A:
             k = A
         t1 = (a + k) / J
         if t1 < 0.0:
             t1 = 0.0
-        d = vp * (t1 + self.dt)
+        d = vp * (t1 + dt)
         if vp > w:
-            return d + (vp * vp - w * w) / (2.0 * A) + w / c
+            return d + (vp * vp - w2) / two_a + w_c
         return d + vp / c
 
     def box(self, v, a) -> None:
@@ -213,7 +218,7 @@ class JointLimiter:
         blo, bhi = list(lo), list(hi)  # working bounds: hard box, narrowed by position where needed
         anchor = self.anchor
         cdt = self.cdt_min
-        checked = [False] * n
+        checked = self._far(q, v)  # joints whose whole box is position-feasible need no check
         for _ in range(n + 1):
             s = 1.0
             for i in range(n):
@@ -267,6 +272,25 @@ class JointLimiter:
             self.position_ok(i, q[i], v[i], out[i])
         self.s = 0.0
         return STOP
+
+    def _far(self, q, v) -> list:
+        """Per joint: True when every next velocity of its hard box keeps it able to stop inside its limits.
+
+        |v'| <= |v| + A dt = w and |a'| <= A, and the stop travel bound is monotone in both, so the joint
+        moves at most w dt + stop_bound(w, A) either way (precomputed for |v| <= V; FAR_MARGIN absorbs the
+        round-off of the sum).
+        """
+        out = [False] * self.n
+        L, U, V, R = self.L, self.U, self.V, self._far_reach
+        for i in range(self.n):
+            vi = v[i]
+            if -V[i] <= vi <= V[i]:
+                reach = R[i]
+            else:  # only from a state outside the viable set (e.g. initialised moving)
+                w = (vi if vi >= 0.0 else -vi) + self.A[i] * self.dt
+                reach = w * self.dt + self.stop_bound(i, w, self.A[i]) + FAR_MARGIN
+            out[i] = L[i] < q[i] - reach and q[i] + reach < U[i]
+        return out
 
     def travel_box(self, v_next, out_lo, out_hi) -> None:
         """Interval of each joint's displacement from now until the stop after moving at v_next for a cycle.

@@ -38,6 +38,8 @@ class Workspace:
         reach = fk.axis_reach
         self.reach = tuple(tuple(r + math.sqrt(sum(x * x for x in off)) for r in reach) for off in self.offsets)
         self.reach_max = tuple(max(r[i] for r in self.reach) for i in range(len(reach)))
+        self._g_key: tuple = (None, None)  # (frames, points) the cached gradients belong to
+        self._g: dict = {}
 
     # ---- points and slacks ----------------------------------------------------------------------------
     def points(self, p, R):
@@ -48,6 +50,11 @@ class Workspace:
         for x, y, z in self._grip:
             out.append((px + r0 * x + r1 * y + r2 * z, py + r3 * x + r4 * y + r5 * z, pz + r6 * x + r7 * y + r8 * z))
         return out
+
+    def at(self, pose):
+        """(points, min slack) of an fk.pose (px, py, pz, R)."""
+        pts = self.points((pose[0], pose[1], pose[2]), pose[3])
+        return pts, self.min_slack(pts)
 
     def constraints(self, pts, ref_pts=None):
         """[(point index, axis, sign, bound)]: sign * P[axis] <= bound, for these points.
@@ -138,51 +145,78 @@ class Workspace:
 
         `frames` = FastKinematics.frames(q) (or a zero-arg callable giving it, evaluated only if needed),
         `pts` the points at q, `cons` their constraints, `slack` their min_slack if known (fast path).
+        The first-order terms g depend only on q, so they are kept for the next call with the same `frames`
+        and `pts` objects (the bisections of one cycle; neither may be changed in place between calls). Six
+        joints, loops written out; the sums are taken in joint order, as a loop would.
         """
-        n = len(dlo)
-        e = [dhi[i] if dhi[i] > -dlo[i] else -dlo[i] for i in range(n)]
-        rm = self.reach_max
-        lip = 0.0
-        for i in range(n):
-            lip += rm[i] * e[i]
-        if slack is not None and lip <= slack:
-            return True  # Lipschitz: no point can move farther than lip
+        lo0, lo1, lo2, lo3, lo4, lo5 = dlo
+        hi0, hi1, hi2, hi3, hi4, hi5 = dhi
+        e0 = hi0 if hi0 > -lo0 else -lo0
+        e1 = hi1 if hi1 > -lo1 else -lo1
+        e2 = hi2 if hi2 > -lo2 else -lo2
+        e3 = hi3 if hi3 > -lo3 else -lo3
+        e4 = hi4 if hi4 > -lo4 else -lo4
+        e5 = hi5 if hi5 > -lo5 else -lo5
+        r0, r1, r2, r3, r4, r5 = self.reach_max
+        if slack is not None and r0 * e0 + r1 * e1 + r2 * e2 + r3 * e3 + r4 * e4 + r5 * e5 <= slack:
+            return True  # Lipschitz: no point can move farther than this
         fr = None
+        lips = {}  # per point: its Lipschitz bound and second-order remainder for this travel box
         for k, axis, sign, bound in cons:
             slack_k = bound - sign * pts[k][axis]
             if slack_k < 0.0:  # already outside (start-up): allow only motion that leads back in
                 if fr is None:
-                    fr = frames() if callable(frames) else frames
+                    fr = self._frames_for(frames, pts)
                 if self._outward(fr, pts[k], axis, sign, dlo, dhi) > 0.0:
                     return False
                 continue
-            R = self.reach[k]
-            lip = 0.0
-            for i in range(n):
-                lip += R[i] * e[i]
-            if lip <= slack_k:
+            lk = lips.get(k)
+            if lk is None:
+                r0, r1, r2, r3, r4, r5 = self.reach[k]
+                lk = lips[k] = [r0 * e0 + r1 * e1 + r2 * e2 + r3 * e3 + r4 * e4 + r5 * e5, None]
+            if lk[0] <= slack_k:
                 continue
             if fr is None:
-                fr = frames() if callable(frames) else frames
-            _, _, axes, origins = fr
-            P = pts[k]
-            first = 0.0
-            second = 0.0
-            prefix = 0.0
-            a1, a2 = (axis + 1) % 3, (axis + 2) % 3
-            for i in range(n):
-                ax, o = axes[i], origins[i]
-                # component `axis` of ax x (P - o)
-                g = sign * (ax[a1] * (P[a2] - o[a2]) - ax[a2] * (P[a1] - o[a1]))
-                t_hi, t_lo = g * dhi[i], g * dlo[i]
-                first += t_hi if t_hi > t_lo else t_lo
-                ei = e[i]
-                second += R[i] * ei * (ei + 2.0 * prefix)
-                prefix += ei
+                fr = self._frames_for(frames, pts)
+            second = lk[1]
+            if second is None:  # sum_ij |d_i||d_j| R[max(i, j)], R[j]: the bound of the later joint
+                r0, r1, r2, r3, r4, r5 = self.reach[k]
+                p2 = e0 + e1
+                p3 = p2 + e2
+                p4 = p3 + e3
+                p5 = p4 + e4
+                second = lk[1] = (r0 * e0 * e0 + r1 * e1 * (e1 + 2.0 * e0) + r2 * e2 * (e2 + 2.0 * p2)
+                                  + r3 * e3 * (e3 + 2.0 * p3) + r4 * e4 * (e4 + 2.0 * p4) + r5 * e5 * (e5 + 2.0 * p5))
+            g = self._g.get((k, axis, sign))
+            if g is None:
+                g = self._g[(k, axis, sign)] = self._gradient(fr, pts[k], axis, sign)
+            g0, g1, g2, g3, g4, g5 = g
+            t0, u0 = g0 * hi0, g0 * lo0
+            t1, u1 = g1 * hi1, g1 * lo1
+            t2, u2 = g2 * hi2, g2 * lo2
+            t3, u3 = g3 * hi3, g3 * lo3
+            t4, u4 = g4 * hi4, g4 * lo4
+            t5, u5 = g5 * hi5, g5 * lo5
+            first = ((t0 if t0 > u0 else u0) + (t1 if t1 > u1 else u1) + (t2 if t2 > u2 else u2)
+                     + (t3 if t3 > u3 else u3) + (t4 if t4 > u4 else u4) + (t5 if t5 > u5 else u5))
             if first + 0.5 * second > slack_k:
                 return False
         return True
 
+    def _frames_for(self, frames, pts):
+        """The frames (evaluating a callable), resetting the gradient cache when they or the points change."""
+        fr = frames() if callable(frames) else frames
+        if fr is not self._g_key[0] or pts is not self._g_key[1]:
+            self._g_key = (fr, pts)
+            self._g = {}
+        return fr
+
+    @staticmethod
+    def _gradient(fr, P, axis, sign):
+        """g_i = sign * component `axis` of axis_i x (P - origin_i): d(sign * P[axis]) / dq_i."""
+        _, _, axes, origins = fr
+        a1, a2 = (axis + 1) % 3, (axis + 2) % 3
+        return [sign * (ax[a1] * (P[a2] - o[a2]) - ax[a2] * (P[a1] - o[a1])) for ax, o in zip(axes, origins)]
 
     @staticmethod
     def _outward(fr, P, axis, sign, dlo, dhi) -> float:

@@ -51,7 +51,11 @@ def test_quick_bench_reports_the_figures():
             assert figures[section][key] > 0
     assert figures["chain"]["pass_fraction"] > 0.99  # the realistic stream passes unchanged
     assert 0 < figures["chain"]["p99_cycle_fraction"] < 1
-    assert set(figures["meets_targets"]) == {"chain", "collision"}
+    assert set(figures["meets_targets"]) == {"chain", "chain_adversarial", "collision"}
+    adv = figures["chain_adversarial"]
+    assert adv["runs"] >= 2 and len(adv["per_run"]) == adv["runs"]
+    assert 0 < adv["cpu_p50_us"] <= adv["cpu_p99_us"] <= adv["cpu_max_us"] <= adv["cpu_max_us_worst_run"]
+    assert 0 < adv["cpu_p99_cycle_fraction"] < 1
 
 
 def test_gripper_commands_are_clamped():
