@@ -34,14 +34,19 @@ def spec(lo: float | None = None, hi: float | None = None, unit: str = "", choic
     return {"lo": lo, "hi": hi, "unit": unit, "choices": choices, "doc": doc}
 
 
-def load_toml(cls: type[T], path: str | Path, overrides: dict[str, Any] | None = None) -> T:
+def read_toml(path: str | Path) -> dict:
+    """A TOML file as a dict; a missing file or bad syntax is a ConfigError naming the file."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist; pass the path of a TOML file")
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}") from exc
+
+
+def load_toml(cls: type[T], path: str | Path, overrides: dict[str, Any] | None = None) -> T:
+    data = read_toml(path)
     if overrides:
         data = merge_flat(data, overrides)
     return load_config(cls, data, where=str(path))

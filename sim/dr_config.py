@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from sim.config import ConfigError, load_config, load_toml, spec
+from sim.config import ConfigError, load_config, load_toml, merge_flat, read_toml, spec
 
 PRESETS = ("off", "light", "heavy")
 Range = tuple[float, float]
@@ -128,16 +128,8 @@ def load_dr(name_or_path: str | DRConfig = "off", overrides: dict[str, Any] | No
         path = Path(name_or_path)
         if path.suffix != ".toml":
             raise ConfigError(f"--dr {name_or_path!r}: expected a preset {list(PRESETS)} or a .toml file")
-        import tomllib
-
-        if not path.is_file():
-            raise ConfigError(f"DR file {path} does not exist; pass a preset {list(PRESETS)} or a TOML path")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{path} is not valid TOML: {exc}") from exc
+        data = read_toml(path)
         base = preset(data.get("preset", "off"))
-    from sim.config import merge_flat
 
     if overrides:
         data = merge_flat(data, overrides)
