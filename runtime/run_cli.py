@@ -22,7 +22,7 @@ examples:
   sudd run ... --allow-motion                         # the policy may move the arm (through safety)
 
 policy bundle: --policy, else $SUDD_POLICY, else policy/bundles/demo if it exists. Make one with
-  sudd train --data out/data --out out/run  &&  sudd export out/run out/bundle
+  sudd train out/data --out out/run  &&  sudd export out/run --out out/bundle
 
 hardware bring-up checklist (before --allow-motion):
   1. E-stop within reach and tested; workspace clear; speed slider at 10-30 % on the teach pendant.
@@ -78,8 +78,8 @@ def resolve_bundle(arg: str | None) -> Path:
                 raise ValueError(f"{p} is not a policy bundle (no manifest.json)")
             return p
     raise ValueError("no policy bundle: pass --policy BUNDLE (or set $SUDD_POLICY). No trained bundle ships yet; "
-                     "make one with `sudd datagen ...`, `sudd train --data DATA --out RUN` and "
-                     "`sudd export RUN BUNDLE`")
+                     "make one with `sudd datagen ...`, `sudd train DATA --out RUN` and "
+                     "`sudd export RUN --out BUNDLE`")
 
 
 def _run(args) -> int:
