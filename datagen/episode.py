@@ -11,13 +11,15 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from datagen.plan import PRIMITIVES, describe
 from datagen.planner import make_planner
 from datagen.primitives import PrimitiveFailed, Primitives
 from datagen.recorder import Recorder
 from datagen.sandbox import SandboxError, run_check
 from datagen.schema import IMAGE_SIZE, EpisodeData
-from datagen.trajectory import execute
+from datagen.trajectory import Motion, Segment, execute
 from sim.build import build_episode
 from sim.config import spec
 from sim.state import StateView
@@ -42,6 +44,16 @@ class DatagenConfig:
     llm_model: str = ""
     time_limit_factor: float = field(default=2.0, metadata=spec(0.5, 10.0,
                                      doc="episode sim-time budget as a multiple of the task's max_seconds"))
+    perturb: float = field(default=0.0, metadata=spec(0.0, 1.0,
+                           doc="probability that a place is disturbed (the object dropped on the way), so the "
+                               "data holds recoveries; 0 leaves episodes exactly as without it"))
+
+
+def _dropped(motion: Motion, rng: np.random.Generator) -> Motion:
+    """The place motion cut 10-40 % of the way (in transit), where the gripper lets go (a slip or a bump)."""
+    cut = motion.truncated(motion.duration * rng.uniform(0.1, 0.4))
+    cut.append(Segment.hold(cut.final_q, 0.6, 0.0, "perturbation"))
+    return cut
 
 
 def _resume_point(plan, index: int, state) -> int:
@@ -67,6 +79,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     state = StateView(world)
     budget = ep.task.max_seconds * cfg.time_limit_factor
     retries, attempts, completed = 0, [], 0
+    # Its own stream, so that perturb = 0 leaves every other draw (and the episode) unchanged.
+    perturb_rng = np.random.default_rng([int(seed), 0x5EED])
     tries = [0] * len(plan.subtasks)
     index = 0
     recorder.subtask = 0
@@ -78,6 +92,9 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
             ok, executed, reason = False, False, ""
             try:
                 motion = getattr(prims, sub.primitive)(*[sub.args[name] for name in PRIMITIVES[sub.primitive]])
+                if sub.primitive == "place" and cfg.perturb and perturb_rng.random() < cfg.perturb:
+                    motion = _dropped(motion, perturb_rng)
+                    reason = "perturbed: object dropped during the place"
                 executed = True
                 execute(world, motion, observer=recorder)
                 ok = run_check(sub.check, state, scene)

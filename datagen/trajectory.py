@@ -77,6 +77,21 @@ class Motion:
     def append(self, seg: Segment) -> None:
         self.segments.append(seg)
 
+    def truncated(self, seconds: float) -> Motion:
+        """The motion's first `seconds` (the segment running then is cut at that time)."""
+        out, left = [], float(seconds)
+        for seg in self.segments:
+            if seg.duration <= left:
+                out.append(seg)
+                left -= seg.duration
+                continue
+            if left > 0:
+                keep = seg.times < seg.times[0] + left
+                times = np.append(seg.times[keep], seg.times[0] + left)
+                out.append(Segment(times, np.vstack([seg.q[keep], seg.at(times[-1])]), seg.gripper, seg.label))
+            break
+        return Motion(out)
+
 
 def execute(world, motion: Motion, observer=None) -> None:
     """Run `motion` on `world` at the physics rate: one joint target and one mj_step per 2 ms.

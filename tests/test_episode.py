@@ -79,3 +79,24 @@ def test_sudd_datagen_writes_resumes_and_reports(tmp_path, capsys):
 def test_unknown_task_in_datagen_lists_families(tmp_path, capsys):
     assert main(["datagen", "--task", "juggle", "--episodes", "1", "--out", str(tmp_path)]) == 2
     assert "pick_place" in capsys.readouterr().err
+
+
+def test_perturbed_place_is_recovered_by_going_back_to_the_pick():
+    data = run_episode("pick_place", 6, replace(FAST, max_retries=1, perturb=1.0))
+    attempts = data.meta["attempts"]
+    assert [a["subtask"] for a in attempts] == [0, 1, 0, 1], attempts
+    assert all("perturbed" in a["reason"] for a in attempts if a["subtask"] == 1)
+    assert data.meta["retries"] == 2 and not data.meta["check_success"]
+    # The recovery is in the data, labelled with the subtask being retried (never -1).
+    assert data.subtask.min() >= 0 and (np.diff(data.subtask) < 0).any()
+
+
+def test_truncated_motion_keeps_its_start_and_ends_at_the_cut():
+    from datagen.trajectory import Motion, Segment
+
+    seg = Segment(np.linspace(0, 1, 11), np.linspace(0, 1, 11)[:, None] * np.ones(6), 0.0, "a")
+    motion = Motion([seg, Segment.hold(np.ones(6), 0.5, 1.0, "b")])
+    cut = motion.truncated(0.55)
+    assert cut.duration == pytest.approx(0.55) and cut.labels == ["a"]
+    assert np.allclose(cut.final_q, 0.55)
+    assert motion.truncated(1.2).labels == ["a", "b"]
