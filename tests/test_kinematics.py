@@ -189,3 +189,127 @@ def test_pose_helpers_round_trip():
     np.testing.assert_allclose(T, pose_to_matrix(pose[:3], pose[3:]))
     pos, rv = matrix_to_pose(T)
     np.testing.assert_allclose(np.concatenate([pos, rv]), pose, atol=1e-12)
+
+
+def _ik_reference(kin, solved, q_current):
+    """`Kinematics.ik` as it was, in batched numpy on `solved` = kin._solve_numpy(T, q_current[5])."""
+    q_current = np.asarray(q_current, dtype=float).reshape(6)
+    Q, valid, why = solved
+    if not valid.any():
+        raise UnreachableError(f"no IK solution: {why}")
+    Q = Q[valid]
+    k0 = np.round((q_current - Q) / (2 * np.pi))
+    cand = Q[None] + 2 * np.pi * (k0[None] + np.array([-1.0, 0.0, 1.0])[:, None, None])
+    inside = (cand >= kin.lower - 1e-9) & (cand <= kin.upper + 1e-9)
+    cost = np.where(inside, np.abs(cand - q_current), np.inf)
+    best = np.argmin(cost, axis=0)
+    sol = np.take_along_axis(cand, best[None], axis=0)[0]
+    err = np.take_along_axis(cost, best[None], axis=0)[0]
+    ok = np.isfinite(err).all(axis=1)
+    if not ok.any():
+        raise UnreachableError(
+            f"the {kin.variant.name} reaches this pose in {len(Q)} configuration(s), but none within its "
+            f"joint limits; choose another TCP orientation or unwind the wrist first")
+    sol, err = sol[ok], err[ok]
+    return np.clip(sol[np.argmin((err**2).sum(axis=1))], kin.lower, kin.upper)
+
+
+def _hard_cases(kin, n, seed):
+    """(Q, poses): random configurations, a third of them at or near the wrist / elbow singularities, plus
+    targets on the reach boundary (arm stretched, nudged in and out) and the shoulder boundary (wrist centre
+    d4 from the base axis), some just outside it, and the two kinds of unreachable targets."""
+    rng = np.random.default_rng(seed)
+    Q = rng.uniform(kin.lower, kin.upper, size=(n, 6))
+    k = n // 6
+    Q[:k, 4] = rng.choice([0.0, np.pi, -np.pi, 1e-13, 1e-11, 1e-9, -1e-7, 1e-4], k)  # wrist: q5 ~ 0, pi
+    Q[k:2 * k, 2] = rng.choice([0.0, 1e-12, -1e-9, 1e-6, np.pi, np.pi - 1e-9, -np.pi + 1e-6], k)  # elbow
+    Q[2 * k:3 * k, [2, 4]] = 0.0
+    poses = list(kin.fk_batch(Q))
+    stretched = Q[3 * k:4 * k].copy()
+    stretched[:, 2] = 0.0
+    for T in kin.fk_batch(stretched):
+        rel = rng.choice([0.0, 1e-12, -1e-12, 1e-10, 5e-10, -5e-10, 2e-9, -1e-3, 1e-3])
+        T[:3, 3] *= 1 + rel  # along the base->TCP line: in or out of reach by about rel * 0.9 m
+        poses.append(T)
+    for T in kin.fk_batch(Q[4 * k:5 * k]):
+        F = T @ np.linalg.inv(kin.tcp_offset)
+        w = F[:2, 3] - kin.d[5] * F[:2, 2]  # wrist centre, horizontal
+        target = kin.d[3] * (1 + rng.choice([0.0, 1e-12, -1e-12, 1e-9, -2e-9, -1e-3]))
+        T[:2, 3] += (target / np.hypot(*w) - 1) * w
+        poses.append(T)
+    poses += [pose_to_matrix([1.5, 0.3, 0.4], [np.pi, 0, 0]), pose_to_matrix([0.0, 0.0, 0.5], [0, 0, 0])]
+    return Q, poses
+
+
+@pytest.mark.parametrize("variant", VARIANT_NAMES)
+def test_scalar_paths_match_batched_numpy(variant):
+    """fk / fk_flange / jacobian / ik_all / ik (scalar math) agree with the batched numpy implementations."""
+    R = rotvec_to_matrix([0.3, -1.1, 0.6])
+    odd_tcp = pose_to_matrix([0.01, -0.02, 0.15], matrix_to_rotvec(R))
+    for kin in (Kinematics.with_tcp_z(variant, TCP_OFFSET_Z), Kinematics(variant, odd_tcp)):
+        Q, poses = _hard_cases(kin, 600, seed=7)
+        # FK and the Jacobian: to rounding, everywhere.
+        T_batch, F_batch, frames = kin.fk_batch(Q), kin.fk_flange_batch(Q), kin.frames_batch(Q)
+        for q, T, Tf, F in zip(Q, T_batch, F_batch, frames):
+            assert np.abs(kin.fk(q) - T).max() <= 1e-12, q
+            assert np.abs(kin.fk_flange(q) - Tf).max() <= 1e-12, q
+            z, o = F[:6, :3, 2], F[:6, :3, 3]
+            J = np.vstack([np.cross(z, T[:3, 3] - o).T, z.T])
+            assert np.abs(kin.jacobian(q) - J).max() <= 1e-12, q
+        # IK: the same branches exist, each gives the same pose, and the joint angles agree to 1e-12 wherever
+        # they are well conditioned. At a singularity (sin q3 or sin q5 ~ 0, wrist centre ~ d4 from the base
+        # axis) the angles are ill-conditioned: a rounding-level change of the pose moves them by up to ~1e-6
+        # in either implementation (only q4 + q6 is defined at q5 = 0, say), so there only the pose is compared.
+        rng = np.random.default_rng(8)
+        n_tight = 0
+        for i, T in enumerate(poses):
+            q_cur = Q[i % len(Q)] + rng.normal(0.0, 0.3, 6)
+            Q_fast, valid = kin.ik_all(T, q6_hint=q_cur[5])
+            solved = kin._solve_numpy(T, q_cur[5])
+            Q_ref, valid_ref, _ = solved
+            np.testing.assert_array_equal(valid, valid_ref, err_msg=str(i))
+            assert np.isnan(Q_fast[~valid]).all()
+            F = T @ kin._tcp_inv
+            shoulder_ok = np.hypot(*(F[:2, 3] - kin.d[5] * F[:2, 2])) > kin.d[3] * 1.001
+
+            def conditioned(sols):
+                return shoulder_ok & (np.minimum(np.abs(np.sin(sols[..., 2])), np.abs(np.sin(sols[..., 4]))) > 0.01)
+
+            if valid.any():
+                a, b = Q_fast[valid], Q_ref[valid]
+                assert np.all(a > -np.pi) and np.all(a <= np.pi)
+                assert np.abs(kin.fk_batch(a) - kin.fk_batch(b)).max() <= 1e-12, i
+                tight = conditioned(b)
+                assert np.abs(wrap_angle(a - b))[tight].max(initial=0.0) <= 1e-12, i
+                n_tight += tight.sum()
+            try:
+                expected, expected_error = _ik_reference(kin, solved, q_cur), None
+            except UnreachableError as e:
+                expected, expected_error = None, str(e)
+            if expected is None:
+                with pytest.raises(UnreachableError) as info:
+                    kin.ik(T, q_cur)
+                assert str(info.value) == expected_error
+                continue
+            got = kin.ik(T, q_cur)
+            assert np.abs(kin.fk(got) - kin.fk(expected)).max() <= 1e-12, i
+            assert np.abs(got - expected).max() <= 1e-5, i  # the same branch and the same turns
+            if conditioned(expected):
+                assert np.abs(got - expected).max() <= 1e-12, i
+        assert n_tight > 4 * len(Q)  # most branches of most poses are compared angle by angle
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's, on the NaN / inf fallback path
+def test_scalar_paths_fall_back_for_non_finite_input():
+    kin = Kinematics.with_tcp_z("ur5e", TCP_OFFSET_Z)
+    for bad in (np.nan, np.inf):
+        q = np.array([0.1, -1.0, 1.2, bad, 0.5, 0.0])
+        np.testing.assert_array_equal(kin.fk(q), kin.fk_batch(q)[0])
+        T = kin.fk([0.1, -1.0, 1.2, 0.3, 0.5, 0.0])
+        T[0, 3] = bad
+        Q, valid = kin.ik_all(T)
+        assert not valid.any() and np.isnan(Q).all()
+        with pytest.raises(UnreachableError, match="no IK solution"):
+            kin.ik(T, np.zeros(6))
+        with pytest.raises(UnreachableError, match="none within its joint limits"):
+            kin.ik(kin.fk(np.zeros(6) + 0.3), q)
