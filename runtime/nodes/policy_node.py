@@ -179,10 +179,10 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         while not ctx.should_stop():
             got = new_frame.wait(1.0 / hz)
             new_frame.clear()
-            if got and time.monotonic() - last_infer < 0.9 / hz:  # camera faster than the policy: pace
-                ctx.sleep_until(last_infer + 1.0 / hz)
-                if ctx.should_stop():
-                    break
+            if got and time.monotonic() - last_infer < 0.9 / hz:
+                # Camera faster than the policy: wait for a fresher frame rather than use this one late
+                # (sleeping to the next tick and then inferring on it added up to a frame period of latency).
+                continue
             while commands:
                 cid, text = commands.popleft()
                 ok, best, cos = judge_command(bundle, text, cfg.similarity_threshold)
