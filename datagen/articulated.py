@@ -107,12 +107,12 @@ def articulate(prims, joint: str, target: float, verb: str) -> Motion:
     return _grasp_move(prims, info, target, verb)
 
 
-def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
-    """Grasp the handle, move it along the joint with a rigid grasp, release, retreat up."""
+def _handle_motion(prims, info: JointInfo, verb: str, after_grasp) -> Motion:
+    """Try each sampled handle grasp: transit to it, approach, close; then `after_grasp(g, qg)` plans the
+    part-specific rest (a list of Segments) or raises PlanningFailed, and the next grasp is tried."""
     world, planner, rng = prims.world, prims.planner, prims.rng
     handle = find_handle(world, info.body)
     q0 = prims.start_q()
-    delta = (target - info.fraction(world.data)) * (info.hi - info.lo)  # m (slide) or rad (hinge)
     grasps = prims.grasps.handle_grasps(handle, q0, rng)
     if not grasps:
         raise PlanningFailed(f"no valid grasp on the handle {handle!r}")
@@ -123,27 +123,7 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
             transit = planner.joint_move(q0, g.q_pre, rng, gripper=g.opening, clearance=0.005)
             approach = planner.line(g.q_pre, g.T, gripper=g.opening)
             qg = approach[-1]
-            hold = g.held.gripper_qpos
-            if info.kind == "slide":
-                T_end = g.T.copy()
-                T_end[:3, 3] += delta * info.axis
-                move = planner.line(qg, T_end, gripper=hold, allow=(info.body,))
-            else:
-                T0 = g.T.copy()
-
-                def pose(u, T0=T0):
-                    R = rotvec_to_matrix(info.axis * delta * u)
-                    T = T0.copy()
-                    T[:3, :3] = R @ T0[:3, :3]
-                    T[:3, 3] = info.anchor + R @ (T0[:3, 3] - info.anchor)
-                    return T
-
-                radius = float(np.linalg.norm(np.cross(info.axis, g.T[:3, 3] - info.anchor)))
-                move = planner.cartesian(qg, pose, abs(delta) * max(radius, 0.02), gripper=hold, allow=(info.body,))
-            qm = move[-1]
-            T_up = prims.kin.fk(qm)
-            T_up[2, 3] += RETREAT
-            retreat = planner.line(qm, T_up, gripper=g.opening, allow=(info.body,))
+            rest = after_grasp(g, qg)
         except PlanningFailed as err:
             errors.append(str(err))
             continue
@@ -151,11 +131,46 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
             Segment(_timed(transit, dt), transit, g.opening, "move to handle"),
             Segment(_timed(approach, dt), approach, g.opening, "approach handle"),
             Segment.hold(qg, GRASP_SECONDS, 1.0, "grasp handle"),
+            *rest,
+        ])
+    raise PlanningFailed(f"{verb}: every handle grasp failed to plan: {errors}")
+
+
+def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
+    """Grasp the handle, move it along the joint with a rigid grasp, release, retreat up."""
+    world, planner = prims.world, prims.planner
+    delta = (target - info.fraction(world.data)) * (info.hi - info.lo)  # m (slide) or rad (hinge)
+    dt = world.timestep
+
+    def after_grasp(g, qg):
+        hold = g.held.gripper_qpos
+        if info.kind == "slide":
+            T_end = g.T.copy()
+            T_end[:3, 3] += delta * info.axis
+            move = planner.line(qg, T_end, gripper=hold, allow=(info.body,))
+        else:
+            T0 = g.T.copy()
+
+            def pose(u):
+                R = rotvec_to_matrix(info.axis * delta * u)
+                T = T0.copy()
+                T[:3, :3] = R @ T0[:3, :3]
+                T[:3, 3] = info.anchor + R @ (T0[:3, 3] - info.anchor)
+                return T
+
+            radius = float(np.linalg.norm(np.cross(info.axis, g.T[:3, 3] - info.anchor)))
+            move = planner.cartesian(qg, pose, abs(delta) * max(radius, 0.02), gripper=hold, allow=(info.body,))
+        qm = move[-1]
+        T_up = prims.kin.fk(qm)
+        T_up[2, 3] += RETREAT
+        retreat = planner.line(qm, T_up, gripper=g.opening, allow=(info.body,))
+        return [
             Segment(_timed(move, dt), move, 1.0, verb),
             Segment.hold(qm, RELEASE_SECONDS, g.opening, "release handle"),
             Segment(_timed(retreat, dt), retreat, g.opening, "retreat"),
-        ])
-    raise PlanningFailed(f"{verb}: every handle grasp failed to plan: {errors}")
+        ]
+
+    return _handle_motion(prims, info, verb, after_grasp)
 
 
 # -- hinges ------------------------------------------------------------------------------------------------------
@@ -200,52 +215,38 @@ def _open_hinge(prims, info: JointInfo, target: float, verb: str) -> Motion:
     With a rigid grasp the wrist would have to turn the full ~90 deg with the lid, ending behind the box
     pointing back at the robot: past ~70 deg that leaves the reachable set or crosses a wrist singularity.
     """
-    world, planner, rng = prims.world, prims.planner, prims.rng
-    handle = find_handle(world, info.body)
-    q0 = prims.start_q()
+    world, planner = prims.world, prims.planner
     now = float(world.data.qpos[info.qpos_adr])
     # The lid is driven to its stop (it falls back from anywhere short of upright), the target only decides
     # whether to go there at all.
     goal = max(info.lo + target * (info.hi - info.lo), info.hi + OVERDRIVE)
     rigid = float(np.clip(goal - now, 0.0, RIGID_ARC))
-    grasps = prims.grasps.handle_grasps(handle, q0, rng)
-    if not grasps:
-        raise PlanningFailed(f"no valid grasp on the handle {handle!r}")
     dt = world.timestep
-    errors = []
-    for g in grasps:
-        try:
-            transit = planner.joint_move(q0, g.q_pre, rng, gripper=g.opening, clearance=0.005)
-            approach = planner.line(g.q_pre, g.T, gripper=g.opening)
-            qg = approach[-1]
-            hold = g.held.gripper_qpos
-            T0 = g.T.copy()
-            radius = float(np.linalg.norm(np.cross(info.axis, T0[:3, 3] - info.anchor)))
-            lift = planner.cartesian(qg, lambda u: _hinge_pose(info, T0, rigid * u, rigid * u),
-                                     rigid * max(radius, 0.02), gripper=hold, allow=(info.body,))
-            ql = lift[-1]
-            rest = goal - now - rigid
-            carry = planner.cartesian(ql, lambda u: _hinge_pose(info, T0, rigid + rest * u, rigid * (1.0 - u)),
-                                      rest * max(radius, 0.02) + 0.05 * rigid, gripper=hold, allow=(info.body,))
-            qc = carry[-1]
-            T_back = prims.kin.fk(qc)
-            T_back[2, 3] += RETREAT
-            retreat = planner.line(qc, T_back, gripper=g.opening, allow=(info.body,))
-        except PlanningFailed as err:
-            errors.append(str(err))
-            continue
+
+    def after_grasp(g, qg):
+        hold = g.held.gripper_qpos
+        T0 = g.T.copy()
+        radius = float(np.linalg.norm(np.cross(info.axis, T0[:3, 3] - info.anchor)))
+        lift = planner.cartesian(qg, lambda u: _hinge_pose(info, T0, rigid * u, rigid * u),
+                                 rigid * max(radius, 0.02), gripper=hold, allow=(info.body,))
+        ql = lift[-1]
+        rest = goal - now - rigid
+        carry = planner.cartesian(ql, lambda u: _hinge_pose(info, T0, rigid + rest * u, rigid * (1.0 - u)),
+                                  rest * max(radius, 0.02) + 0.05 * rigid, gripper=hold, allow=(info.body,))
+        qc = carry[-1]
+        T_back = prims.kin.fk(qc)
+        T_back[2, 3] += RETREAT
+        retreat = planner.line(qc, T_back, gripper=g.opening, allow=(info.body,))
         loose = max(_command_for(world, hold) - LOOSEN, g.opening)
-        return Motion([
-            Segment(_timed(transit, dt), transit, g.opening, "move to handle"),
-            Segment(_timed(approach, dt), approach, g.opening, "approach handle"),
-            Segment.hold(qg, GRASP_SECONDS, 1.0, "grasp handle"),
+        return [
             Segment(_timed(lift, dt), lift, 1.0, verb),
             Segment.hold(ql, LOOSEN_SECONDS, loose, "loosen grasp"),
             Segment(_timed(carry, dt), carry, loose, verb),
             Segment.hold(qc, RELEASE_SECONDS, g.opening, "release handle"),
             Segment(_timed(retreat, dt), retreat, g.opening, "retreat"),
-        ])
-    raise PlanningFailed(f"{verb}: every handle grasp failed to plan: {errors}")
+        ]
+
+    return _handle_motion(prims, info, verb, after_grasp)
 
 
 def _push_frame(info: JointInfo, world) -> tuple[np.ndarray, float]:
