@@ -1,7 +1,7 @@
 """Bus benchmark: one Zenoh hop between two sessions on loopback TCP, as the runtime uses it.
 
-    python -m runtime.bench_bus            # a readable table
-    python -m runtime.bench_bus --json     # the figures as JSON
+    sudd bench bus            # a readable table
+    sudd bench bus --json     # the figures as JSON
 
 A hop is measured from just before `Publisher.publish` (so it includes encoding) to the subscriber's
 callback (after `decode` and validation), both in this process, so one clock times both ends. Messages go
@@ -16,12 +16,9 @@ Target: frame p50 <= 0.3 ms (reference: Zenoh 1.x loopback ~75 us p50 small mess
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import statistics
-import sys
 import threading
 import time
 from importlib.metadata import version
@@ -199,17 +196,3 @@ def format_table(result: dict) -> str:
     lines.append(f"\nframe p50 target <= {result['frame_target_p50_ms']} ms: "
                  f"{'met' if result['frame_target_met'] else 'NOT met'}")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m runtime.bench_bus", description=__doc__.splitlines()[0])
-    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
-    parser.add_argument("--quick", action="store_true", help="one short run (a smoke test, not for figures)")
-    args = parser.parse_args(argv)
-    result = run_bus_bench(quick=args.quick)
-    print(json.dumps(result, indent=2) if args.json else format_table(result))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,7 +1,7 @@
 """Safety benchmark: per-cycle cost of the filter chain and of the collision check.
 
-    python -m safety.bench            # a readable table
-    python -m safety.bench --json     # the figures as JSON (what `sudd bench safety --json` prints)
+    sudd bench safety            # a readable table
+    sudd bench safety --json     # the figures as JSON
 
 * chain: `SafetyFilter.step` without the collision guard on a realistic stream (a smooth multi-joint motion
   at up to ~0.15 m/s TCP, measured joints one cycle behind), 20k cycles; almost every cycle passes unchanged.
@@ -22,12 +22,9 @@ loop should run); chain sections also give the thread's CPU time (cpu_*), which 
 
 from __future__ import annotations
 
-import argparse
 import gc
-import json
 import os
 import platform
-import sys
 import time
 
 import numpy as np
@@ -204,29 +201,3 @@ def run_safety_bench(quick: bool = False) -> dict:
                                 and adv["cpu_max_us"] <= TARGET_ADVERSARIAL_CPU_MAX_US,
                                 "collision": col["p99_us"] <= TARGET_COLLISION_P99_US}
     return figures
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m safety.bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--json", action="store_true")
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    figures = run_safety_bench(quick=args.quick)
-    if args.json:
-        print(json.dumps(figures, indent=2))
-    else:
-        for section, values in figures.items():
-            if isinstance(values, dict):
-                for key, value in values.items():
-                    print(f"{section + '.' + key:45s} {value}")
-            else:
-                print(f"{section:45s} {values}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
-
-
-__all__ = ["run_safety_bench", "realistic_stream", "adversarial_stream"]

@@ -1,8 +1,8 @@
 """Simulation benchmark: physics steps/s, renders/s per fidelity level and resolution, scene build times.
 
-    python -m sim.bench            # a readable table
-    python -m sim.bench --json     # the figures as JSON
-    taskset -c 0 python -m sim.bench --json   # one core, as datagen workers run
+    sudd bench sim            # a readable table
+    sudd bench sim --json     # the figures as JSON
+    taskset -c 0 sudd bench sim --json   # one core, as datagen workers run
 
 Every figure is the median of several repetitions taken in one run. The scene is the robot on its table with a
 bin and a few blocks, built directly from sim.scene and sim.objects (no task, no domain randomization). Renders
@@ -11,12 +11,9 @@ alternate between the scene camera and the wrist camera and count one each.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import statistics
-import sys
 import time
 
 import mujoco
@@ -256,17 +253,3 @@ def format_table(result: dict) -> str:
                      f"{'on' if rs['shadows'] else 'off'}, {rs['offsamples']}x MSAA")
     lines.append(f"\ntook {result['bench_s']:.1f} s")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m sim.bench", description=__doc__.splitlines()[0])
-    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
-    parser.add_argument("--quick", action="store_true", help="fewer repetitions (~10 s)")
-    args = parser.parse_args(argv)
-    result = run_sim_bench(quick=args.quick)
-    print(json.dumps(result, indent=2) if args.json else format_table(result))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
