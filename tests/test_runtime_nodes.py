@@ -73,3 +73,41 @@ def test_help_documents_hardware_and_say(capsys):
     with pytest.raises(SystemExit):
         main(["say", "--help"])
     assert "--connect" in capsys.readouterr().out
+
+
+def test_sim_render_world_is_bit_identical_and_renders_the_same_image():
+    """sim_render's world (its own build_episode) set from a snapshot of the robot node's physics renders
+    exactly what the robot node's own world would."""
+    import types as _types
+
+    import mujoco
+
+    from runtime.nodes.sim_render import _build, model_digest, state_spec
+    from sim.render import CameraRenderer
+    from sim.twins.rig import SimRig
+
+    a, b = _build("pick_place", 0, "off"), _build("pick_place", 0, "off")
+    assert model_digest(a.world.model) == model_digest(b.world.model)
+    rig = SimRig(a.world, "lockstep")
+    rig.arm.servo_j(np.asarray(rig.arm.state().q) + 0.05)
+    rig.step(50)
+    spec = state_spec()
+    buf = np.empty(mujoco.mj_stateSize(a.world.model, spec))
+    mujoco.mj_getState(a.world.model, a.world.data, buf, spec)
+    d = mujoco.MjData(b.world.model)
+    mujoco.mj_setState(b.world.model, d, buf, spec)
+    mujoco.mj_forward(b.world.model, d)
+    assert np.array_equal(d.qpos, a.world.data.qpos)
+    ref = mujoco.MjData(a.world.model)  # as the in-process SimCamera renders a snapshot: qpos + mocap, kinematics
+    src = a.world.data
+    ref.qpos[:], ref.mocap_pos[:], ref.mocap_quat[:] = src.qpos, src.mocap_pos, src.mocap_quat
+    mujoco.mj_kinematics(a.world.model, ref)
+    mujoco.mj_camlight(a.world.model, ref)
+    ra = CameraRenderer(_types.SimpleNamespace(model=a.world.model, data=ref), 64, 64, shadows=False)
+    rb = CameraRenderer(_types.SimpleNamespace(model=b.world.model, data=d), 64, 64, shadows=False)
+    try:
+        for cam in ("scene_cam", "gripper/wrist_cam"):
+            assert np.array_equal(ra.rgb(cam), rb.rgb(cam))
+    finally:
+        ra.close()
+        rb.close()

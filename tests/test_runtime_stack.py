@@ -169,3 +169,31 @@ def test_injected_protective_stop_holds_without_crash(bundle):
     assert rob["protective_stopped"] and rob["events"].get("protective_stop", 0) >= 1
     assert after and max(float(np.max(np.abs(s.qd))) for s in after) < 1e-3
     assert any(int(s.safety_mode) != int(m.SafetyMode.NORMAL) for s in after)
+
+
+@pytest.mark.parametrize("render_process", [True, False])
+def test_sim_cameras_rendered_in_their_own_process_or_in_the_robot_node(bundle, render_process):
+    la, info, w = _start(bundle, render_process=render_process)
+    got: dict = {"scene": [], "wrist": []}
+    for name in got:
+        la.bus.subscribe(B.camera_color(name), lambda f, n=name: got[n].append((time.monotonic_ns(), f)))
+    try:
+        assert w.wait(lambda: min(len(v) for v in got.values()) >= 10, 20), {k: len(v) for k, v in got.items()}
+    finally:
+        la.monitor(duration_s=0.0)
+    rob = _clean_exit(la)
+    assert min(rob["frames_published"].values()) >= 10, rob["frames_published"]
+    for name, frames in got.items():
+        caps = [f.capture_ns for _, f in frames]
+        assert caps == sorted(caps) and len(set(caps)) == len(caps)  # one capture time per snapshot, in order
+        for t_recv, f in frames:
+            assert f.camera_id == name and f.color.shape == (128, 128, 3) and f.color.dtype == np.uint8
+            assert 0 < t_recv - f.capture_ns < 5e9  # capture time = the physics snapshot's (monotonic) time
+        # past the start-up (the first render makes the GL context), frames arrive fresh
+        assert np.median([t_recv - f.capture_ns for t_recv, f in frames[3:]]) < 0.2e9
+        assert float(frames[-1][1].color.std()) > 1.0  # a rendered scene, not a blank image
+    if render_process:
+        sr = rob["sim_render"]
+        assert sr["ok"] and sr["exitcode"] == 0 and sr["renders"] >= 10 and sr["send_errors"] == 0, sr
+    else:
+        assert "sim_render" not in rob

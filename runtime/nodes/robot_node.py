@@ -4,13 +4,18 @@
 
 Sim mode (`robot_ip` empty): build_episode(task, seed, dr, "fast") + SimRig(realtime) + ControllerLoop(
 SimArm, SimGripper, SafetyFilter) + the sim cameras the policy needs (scene -> "scene_cam", wrist ->
-"gripper/wrist_cam"), published as camera frames. Hardware mode (`robot_ip` set): URRtdeArm + Robotiq2F85;
+"gripper/wrist_cam"), published as camera frames. The cameras render in their own process
+(`runtime.nodes.sim_render`, `render_process=True`, the default): it builds the same episode world, gets a
+physics snapshot (mj_getState) from this node at the camera rate and publishes the frames itself, so GL
+rendering never holds this process's GIL against the 500 Hz loop; `render_process=False` renders them
+here (SimCamera), as before. Hardware mode (`robot_ip` set): URRtdeArm + Robotiq2F85;
 the cameras are the camera node's job. Without `allow_motion` the hardware node only connects, publishes
 state and events and holds: no ControllerLoop, no servo_j, incoming chunks are counted and refused.
 
-Threads in this process: the rig physics (sim), the controller loop (500 Hz, ControllerLoop.start()), one
-publisher per sim camera, the chunk worker (IK of an incoming chunk, ~2 ms a knot, off the Zenoh thread
-and off the control thread), and the main loop (~100 Hz): arm/gripper state, safety events, telemetry,
+Threads in this process: the rig physics (sim), the controller loop (500 Hz, ControllerLoop.start()), the
+snapshot sender for sim_render (or, with render_process=False, one renderer + one publisher per sim
+camera), the chunk worker (IK of an incoming chunk, ~2 ms a knot, off the Zenoh thread and off the control
+thread), and the main loop (~100 Hz): arm/gripper state, safety events, telemetry,
 the task's success predicate (sim), fault injection (sim, for tests), parent watch.
 
 Every servo_j goes through `GuardedArm`, which checks that the target it is given is exactly the safety
@@ -50,6 +55,7 @@ class RobotNodeConfig:
     cameras: tuple[str, ...] = ("scene", "wrist")  # the bundle's camera names (sim cameras to publish)
     image_size: tuple[int, int] = (128, 128)  # (H, W) of the sim cameras
     camera_fps: float = 20.0  # twice the policy rate: the policy always finds a frame a few ms old
+    render_process: bool = True  # sim cameras rendered in their own process (sim_render); False: in this one
     success_check_s: float = 0.5  # how often the task's success predicate is evaluated
     task_timeout_s: float = 0.0  # > 0: a "task_timeout" event after this long without success
     # hardware
@@ -144,6 +150,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                     "chunks_rejected": 0, "frames_published": {}, "events": {}, "task_success": False}
     rig = episode = None
     cams: dict = {}
+    render = None  # sim_render.SimRenderProcess (render_process)
     bus = None
     loop = None
     threads: list[threading.Thread] = []
@@ -170,15 +177,26 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
             from sim.twins.camera import CameraNoiseConfig
             from sim.twins.rig import SimRig
 
+            for name in cfg.cameras:
+                if name not in SIM_CAMERAS:
+                    raise ValueError(f"camera {name!r}: the sim has {sorted(SIM_CAMERAS)}")
+            if cfg.render_process and cfg.cameras:  # started first: it builds its world while we build ours
+                from runtime.nodes.sim_render import SimRenderProcess
+
+                render = SimRenderProcess(cfg.bus, cfg.task, cfg.seed, cfg.dr,
+                                          {name: SIM_CAMERAS[name] for name in cfg.cameras}, cfg.image_size,
+                                          cfg.camera_fps)
             episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast")
             rig = SimRig(episode.world, "realtime")
             raw_arm, gripper = rig.arm, rig.gripper
             variant = episode.world.variant.name
             H, W = cfg.image_size
-            for name in cfg.cameras:
-                if name not in SIM_CAMERAS:
-                    raise ValueError(f"camera {name!r}: the sim has {sorted(SIM_CAMERAS)}")
-                cams[name] = rig.camera(SIM_CAMERAS[name], W, H, cfg.camera_fps, CameraNoiseConfig(shadows=False))
+            if render is None:
+                for name in cfg.cameras:
+                    cams[name] = rig.camera(SIM_CAMERAS[name], W, H, cfg.camera_fps,
+                                            CameraNoiseConfig(shadows=False))
+            else:
+                render.wait_ready(episode.world.model)
             rig.start()
             gripper.activate()
         safety = GuardedFilter(SafetyFilter(default_limits(variant)))
@@ -242,6 +260,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
         for name, cam in cams.items():
             cam.start()
             threads.append(threading.Thread(target=camera_pub, args=(name, cam), name=f"pub-{name}", daemon=True))
+        if render is not None:
+            render.start(rig, cams_on)
         for t in threads:
             t.start()
         loop.start()
@@ -265,7 +285,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 except ValueError as exc:
                     log.warning("safety event %s not published: %s", ev.kind, exc)
 
-        info = {"mode": report["mode"], "variant": variant, "cameras": list(cams)}
+        info = {"mode": report["mode"], "variant": variant,
+                "cameras": list(cams) if render is None else list(render.cameras)}
         if episode is not None:
             info.update(task=cfg.task, seed=cfg.seed, instruction=episode.instruction)
         report["instruction"] = info.get("instruction")
@@ -312,7 +333,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 injected_ps = True
                 rig.trigger_protective_stop("injected fault (fault_protective_stop_s)")
                 report["protective_stop_injected_at"] = now - t0
-            if cams and cfg.fault_camera_stop_s > 0 and not injected_cam and now - t0 >= cfg.fault_camera_stop_s:
+            if (cams or render is not None) and cfg.fault_camera_stop_s > 0 and not injected_cam \
+                    and now - t0 >= cfg.fault_camera_stop_s:
                 injected_cam = True
                 cams_on.clear()
                 report["camera_stopped_at"] = now - t0
@@ -355,6 +377,14 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 cam.stop()
             except Exception:
                 pass
+        if render is not None:
+            try:
+                rr = render.close()
+                report["frames_published"] = dict(rr.get("frames_published", {}))
+                report["sim_render"] = {k: v for k, v in rr.items() if k != "frames_published"}
+            except Exception as exc:
+                log.exception("sim_render close failed")
+                report["sim_render"] = {"error": repr(exc)}
         if rig is not None:
             report["protective_stopped"] = rig.protective_stopped
             rig.close()
