@@ -2,40 +2,20 @@
 
 Why Zenoh: one peer-to-peer pub/sub that is ~75 us a hop on loopback, carries camera frames through shared
 memory, and is what rmw_zenoh (ROS 2) speaks, so a ROS tool can join later without a bridge. Why a wrapper:
-every topic has one message type and one QoS decided here (an estop is never dropped, an old frame always
+every topic has one message type and one QoS, decided once (an estop is never dropped, an old frame always
 is), every payload is decoded and validated once at the edge, and bad payloads are counted per reason
 instead of reaching the policy or the arm.
 
-Key layout (``<robot>`` = BusConfig.robot; topics are given relative, e.g. ``bus.publisher("arm/state")``):
-
-    ====================================  ===============  ========================================
-    key                                   message          QoS
-    ====================================  ===============  ========================================
-    sudd/<robot>/camera/<name>/color      CameraFrame      image: DATA, drop, SHM for large frames
-    sudd/<robot>/camera/<name>/depth      CameraFrame      image (depth-only frames)
-    sudd/<robot>/arm/state                RobotState       control: INTERACTIVE_HIGH, drop, express
-    sudd/<robot>/gripper/state            GripperStatus    control
-    sudd/<robot>/policy/chunk             ActionChunk      control
-    sudd/<robot>/command/language         LanguageCommand  control
-    sudd/<robot>/safety/event             StatusEvent      control
-    sudd/<robot>/safety/estop             StatusEvent      estop: REAL_TIME, block, express
-    sudd/<robot>/telemetry/<stage>        Telemetry        telemetry: DATA_LOW, drop
-    ====================================  ===============  ========================================
-
-Drop semantics: Zenoh's DROP discards what does not fit the transmit queue (after ~1 ms); consumers read
-images with `latest()`, a one-slot mailbox that always holds the newest, so the consumer sees drop-oldest.
-Control state is also "newest wins"; only the estop blocks (it must arrive, and it is tiny and rare).
-Sessions: peer mode, multicast scouting off and loopback-only endpoints by default; peers find each other
-only through `listen`/`connect` (gossip over those links lets peers that met a common peer connect directly).
+This module is the session wrapper: `Bus`, its cached `Publisher`s and its `Subscription`s. The key layout,
+topic names and QoS classes are in `runtime.bus_topics`; where a process joins (`BusConfig`, endpoints,
+the Zenoh config) is in `runtime.bus_config`. Both are re-exported here, so `from runtime.bus import ...`
+reaches all of it.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import re
 import secrets
-import socket
 import threading
 import time
 from collections import OrderedDict
@@ -45,105 +25,31 @@ from typing import Callable, NamedTuple
 import zenoh
 
 from runtime import messages as m
-from sim.config import ConfigError, load_config, spec
-from sim.config import validate as check_ranges
+from runtime.bus_config import BusConfig, pick_port, zenoh_config
+from runtime.bus_topics import (  # noqa: F401 - the topic names and QoS table are part of this module's API
+    ARM_STATE,
+    ESTOP,
+    GRIPPER_STATE,
+    LANGUAGE_COMMAND,
+    POLICY_CHUNK,
+    QOS,
+    ROOT,
+    SAFETY_EVENT,
+    SHM_MIN_BYTES,
+    TOPICS,
+    QoS,
+    camera_color,
+    camera_depth,
+    resolve_topic,
+    telemetry,
+)
 
 log = logging.getLogger(__name__)
-
-ROOT = "sudd"
-ARM_STATE, GRIPPER_STATE, POLICY_CHUNK = "arm/state", "gripper/state", "policy/chunk"
-LANGUAGE_COMMAND, SAFETY_EVENT, ESTOP = "command/language", "safety/event", "safety/estop"
-
-
-def camera_color(name: str) -> str:
-    return f"camera/{name}/color"
-
-
-def camera_depth(name: str) -> str:
-    return f"camera/{name}/depth"
-
-
-def telemetry(stage: str) -> str:
-    return f"telemetry/{stage}"
-
-
-@dataclass(frozen=True)
-class QoS:
-    priority: zenoh.Priority
-    congestion: zenoh.CongestionControl
-    express: bool  # send at once, no batching: lower latency for small messages
-    shm: bool  # publish through shared memory (when the session has it) above SHM_MIN_BYTES
-
-
-_CTRL = QoS(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, False)
-QOS = {"image": QoS(zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, True), "control": _CTRL,
-       "estop": QoS(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, False),
-       "telemetry": QoS(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, False, False)}
-# relative topic pattern -> (message type, QoS class); {x} is one key segment
-TOPICS = {"camera/{name}/color": (m.CameraFrame, "image"), "camera/{name}/depth": (m.CameraFrame, "image"),
-          ARM_STATE: (m.RobotState, "control"), GRIPPER_STATE: (m.GripperStatus, "control"),
-          POLICY_CHUNK: (m.ActionChunk, "control"), LANGUAGE_COMMAND: (m.LanguageCommand, "control"),
-          SAFETY_EVENT: (m.StatusEvent, "control"), ESTOP: (m.StatusEvent, "estop"),
-          "telemetry/{stage}": (m.Telemetry, "telemetry")}
-SHM_MIN_BYTES = 32 * 1024  # below this a copy over the socket is as fast as a shared-memory handle
-_SEGMENT = re.compile(r"[A-Za-z0-9_-]{1,64}")
-_ENDPOINT = re.compile(r"(tcp|udp|tls|quic)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):(\d{1,5})")
-_LOOPBACK = re.compile(r"127(\.\d{1,3}){3}|localhost|\[::1\]")
+_pick_port = pick_port  # the name runtime.launch imports
 
 
 class StaleError(RuntimeError):
     """No message on the topic, or the newest one was received longer ago than the caller accepts."""
-
-
-def resolve_topic(topic: str, wildcard: bool = False) -> tuple[type[m.Message], QoS]:
-    """The message type and QoS of a relative topic; ValueError naming the known topics if it is none."""
-    parts = topic.split("/")
-    for pattern, (mtype, qos) in TOPICS.items():
-        pat = pattern.split("/")
-        if len(pat) == len(parts) and all(
-                p == s if not p.startswith("{") else (_SEGMENT.fullmatch(s) or (wildcard and s == "*"))
-                for p, s in zip(pat, parts)):
-            return mtype, QOS[qos]
-    raise ValueError(f"unknown topic {topic!r}; known: {', '.join(TOPICS)} (segments: letters, digits, _ -)")
-
-
-@dataclass(frozen=True)
-class BusConfig:
-    """Where this process joins the bus. Endpoints are Zenoh locators, e.g. "tcp/127.0.0.1:7447"; a listen
-    port of 0 is an ephemeral port picked at open (see `Bus.listen_endpoints`)."""
-
-    robot: str = "ur5"
-    mode: str = field(default="peer", metadata=spec(choices=("peer", "client")))
-    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
-    connect: tuple[str, ...] = ()
-    multicast_scouting: bool = False  # off: no surprise peers from the LAN, deterministic topology
-    loopback_only: bool = True  # refuse non-loopback endpoints unless explicitly allowed
-    shm: bool = True  # shared memory between processes on this host (images); falls back to TCP if absent
-    shm_pool_mib: int = field(default=32, metadata=spec(1, 4096, "MiB"))
-    log_interval_s: float = field(default=5.0, metadata=spec(0.0, 3600.0, "s"))  # decode-error log rate limit
-
-    def __post_init__(self):
-        self.validate()
-
-    @classmethod
-    def from_dict(cls, data: dict) -> BusConfig:
-        return load_config(cls, data)
-
-    def validate(self) -> None:
-        check_ranges(self)
-        if not _SEGMENT.fullmatch(self.robot):
-            raise ConfigError(f"robot = {self.robot!r}: 1-64 letters, digits, _ or -")
-        if self.mode == "client" and not self.connect:
-            raise ConfigError("mode = 'client' needs at least one connect endpoint (a router)")
-        if self.loopback_only and self.multicast_scouting:
-            raise ConfigError("multicast_scouting finds peers on the LAN; it needs loopback_only = false")
-        for name in ("listen", "connect"):
-            for ep in getattr(self, name):
-                match = _ENDPOINT.fullmatch(ep) if isinstance(ep, str) else None
-                if not match or not (name == "listen" or int(match[3]) > 0) or int(match[3]) > 65535:
-                    raise ConfigError(f"{name} endpoint {ep!r} is not <tcp|udp|tls|quic>/<host>:<port>")
-                if self.loopback_only and not _LOOPBACK.fullmatch(match[2]):
-                    raise ConfigError(f"{name} endpoint {ep!r} is not loopback; set loopback_only = false")
 
 
 class Received(NamedTuple):
@@ -337,9 +243,9 @@ class Bus:
         """Open a session. Port-0 listen endpoints get a free port (retried if another process takes it)."""
         config = config or BusConfig()
         for attempt in range(5):
-            listen = tuple(_pick_port(ep) for ep in config.listen) if config.mode == "peer" else ()
+            listen = tuple(pick_port(ep) for ep in config.listen) if config.mode == "peer" else ()
             try:
-                return cls(config, zenoh.open(_zenoh_config(config, listen)), listen)
+                return cls(config, zenoh.open(zenoh_config(config, listen)), listen)
             except zenoh.ZError as exc:
                 if attempt == 4 or not any(ep.endswith(":0") for ep in config.listen):
                     raise
@@ -414,25 +320,3 @@ def _wait(cond: Callable[[], bool], timeout_s: float) -> bool:
             return False
         time.sleep(0.005)
     return True
-
-
-def _pick_port(endpoint: str) -> str:
-    """Replace port 0 with a free one: Zenoh's Python API does not report the port it bound."""
-    proto, rest = endpoint.split("/", 1)
-    host, port = rest.rsplit(":", 1)
-    if port != "0":
-        return endpoint
-    family = socket.AF_INET6 if host.startswith("[") else socket.AF_INET
-    with socket.socket(family, socket.SOCK_DGRAM if proto in ("udp", "quic") else socket.SOCK_STREAM) as s:
-        s.bind((host.strip("[]"), 0))
-        return f"{proto}/{host}:{s.getsockname()[1]}"
-
-
-def _zenoh_config(cfg: BusConfig, listen: tuple[str, ...]) -> zenoh.Config:
-    zc = zenoh.Config()
-    zc.insert_json5("mode", json.dumps(cfg.mode))
-    zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
-    zc.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
-    zc.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shm))
-    return zc

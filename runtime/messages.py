@@ -1,26 +1,10 @@
 """Wire messages of the runtime bus: one versioned binary format, strict decoding, no pickle.
 
-Why hand-rolled struct + raw numpy bytes: a 320x240 frame must encode/decode in microseconds (protobuf or
-msgpack box every array), C++/Rust must be able to read it without Python, and a malformed or hostile
-payload must never reach the policy or the arm (pickle executes code; here every field is validated).
-All little-endian. Arrays are raw C-order bytes after an explicit dtype/shape; decoded arrays are read-only
-views on the received buffer (no copy).
+Each message is a frozen dataclass that validates itself (`_check`, run by both `encode`, as ValueError, and
+`decode`, as DecodeError) and writes/reads its body with the codec of `runtime.message_codec`, which holds the
+header layout, the field encodings, the size limits and DecodeError (all re-exported here).
 
-Header, 36 bytes, struct ``<4sHHQqQI``, on every message:
-
-    =========  ====  ========================================================================
-    magic      4s    b"SUDD"
-    version    u16   SCHEMA_VERSION (1); any other value is rejected
-    msg_type   u16   1 CameraFrame 2 RobotState 3 GripperStatus 4 ActionChunk 5 LanguageCommand
-                     6 StatusEvent 7 Telemetry
-    seq        u64   per-publisher sequence number (the bus finds gaps / reordering with it)
-    stamp_ns   i64   source (publish) time, host CLOCK_MONOTONIC ns, >= 0
-    source_id  u64   publisher id, random per publisher (a restart is a new source, not a reorder)
-    body_len   u32   bytes after the header; must equal the rest of the payload exactly
-    =========  ====  ========================================================================
-
-Bodies. ``str`` = u16 byte length + UTF-8; ``arr`` = u8 dtype code (1 u8, 2 u16, 3 i64, 4 f64), u8 ndim,
-ndim x u32 dims, raw bytes:
+Bodies (``str``, ``arr`` and the little-endian struct fields are encoded as `runtime.message_codec` says):
 
     ===============  ========================================================================
     CameraFrame      <qQHHB4d capture_ns, frame_seq, H, W, flags (1 colour | 2 depth), fx fy cx cy;
@@ -40,9 +24,8 @@ ndim x u32 dims, raw bytes:
     ===============  ========================================================================
 
 Every float must be finite (robot state, actions, intrinsics, event values): a NaN that reaches servoJ is a
-fault, so it is rejected here, before any consumer. `decode` raises only `DecodeError(reason, detail)`;
-`reason` is one of REASONS, a small fixed set, so the bus can count errors per reason without unbounded labels.
-Validation is one `_check` per message, run by both `encode` (ValueError) and `decode` (DecodeError).
+fault, so it is rejected here, before any consumer. `decode` raises only `DecodeError(reason, detail)`, with
+`reason` one of REASONS.
 """
 
 from __future__ import annotations
@@ -54,144 +37,31 @@ from typing import ClassVar
 
 import numpy as np
 
+from runtime.message_codec import (  # the header constants, limits and DecodeError: part of this module's API
+    HEADER,
+    MAGIC,
+    MAX_BODY,
+    MAX_CHUNK,
+    MAX_IMAGE_SIDE,
+    MAX_ITEMS,
+    MAX_NAME,
+    MAX_TEXT,
+    REASONS,  # noqa: F401 - re-exported
+    SCHEMA_VERSION,
+    DecodeError,
+    Message,
+    Reader,
+    check_finite,
+    check_text,
+    check_time,
+    need,
+)
 from sim.camera_model import Intrinsics
 from sim.devices import ArmState, Frame, GripperState, RobotMode, SafetyMode
 
-MAGIC, SCHEMA_VERSION, HEADER = b"SUDD", 1, struct.Struct("<4sHHQqQI")
-MAX_IMAGE_SIDE, MAX_CHUNK, MAX_TEXT, MAX_NAME = 4096, 256, 1000, 64
-MAX_ITEMS = {"StatusEvent": 32, "Telemetry": 64}
-MAX_BODY = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 5 + 4096  # colour + depth at the largest size, + fields
 SEVERITIES = ("info", "warning", "error", "critical")  # the names safety.events uses
 ACTION_KINDS = {"ee": (1, 10), "joint": (2, 7)}  # kind -> (wire code, values per action)
-REASONS = ("bad_magic", "bad_version", "bad_type", "truncated", "oversize", "bad_dtype", "bad_shape",
-           "too_large", "non_finite", "bad_text", "bad_value", "non_monotonic", "wrong_type")
-_DTYPES = {1: np.dtype("u1"), 2: np.dtype("<u2"), 3: np.dtype("<i8"), 4: np.dtype("<f8")}
-_CODES = {v: k for k, v in _DTYPES.items()}
 _UR_ROBOT_MODES, _UR_SAFETY_MODES = frozenset(m.value for m in RobotMode), frozenset(m.value for m in SafetyMode)
-
-
-class DecodeError(ValueError):
-    """A payload that is not a valid message. `reason` is one of REASONS; `detail` says what and where."""
-
-    def __init__(self, reason: str, detail: str = ""):
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason, self.detail = reason, detail
-
-
-def _need(ok, reason: str, detail) -> None:
-    """Raise DecodeError(reason, detail) unless `ok`; `detail` may be a lambda: formatted only on failure."""
-    if not ok:
-        raise DecodeError(reason, detail() if callable(detail) else detail)
-
-
-def _finite(name: str, a) -> None:
-    _need(bool(np.isfinite(a).all()), "non_finite", lambda: f"{name} has NaN/Inf")
-
-
-def _text(name: str, s, lo: int, hi: int) -> None:
-    _need(isinstance(s, str), "bad_text", lambda: f"{name} must be a str")
-    _need(len(s) <= hi, "too_large", lambda: f"{name} has {len(s)} chars > {hi}")
-    _need(len(s) >= lo, "bad_value", lambda: f"{name} must not be empty")
-
-
-def _time(name: str, t) -> None:
-    _need(0 <= int(t) < 2**63, "bad_value", lambda: f"{name} = {t} must be a time >= 0 ns")
-
-
-class _Writer:
-    def __init__(self):
-        self.parts: list = []
-
-    def pack(self, fmt: str, *values) -> None:
-        self.parts.append(struct.pack(fmt, *values))
-
-    def text(self, s: str) -> None:
-        raw = s.encode("utf-8")
-        self.parts += [struct.pack("<H", len(raw)), raw]
-
-    def array(self, a: np.ndarray) -> None:
-        self.parts += [struct.pack(f"<BB{a.ndim}I", _CODES[a.dtype], a.ndim, *a.shape),
-                       memoryview(np.ascontiguousarray(a)).cast("B")]
-
-    def items(self, d: dict, fmt: str) -> None:
-        self.pack("<H", len(d))
-        for k, v in d.items():
-            self.text(k)
-            self.pack(fmt, v)
-
-
-class _Reader:
-    def __init__(self, buf: memoryview, pos: int):
-        self.buf, self.pos = buf, pos
-
-    def take(self, n: int, what: str) -> memoryview:
-        _need(self.pos + n <= len(self.buf), "truncated", lambda: f"{what} needs {n} bytes at offset {self.pos}")
-        self.pos += n
-        return self.buf[self.pos - n:self.pos]
-
-    def unpack(self, fmt: str, what: str) -> tuple:
-        n = struct.calcsize(fmt)
-        _need(self.pos + n <= len(self.buf), "truncated", lambda: f"{what} needs {n} bytes at offset {self.pos}")
-        self.pos += n
-        return struct.unpack_from(fmt, self.buf, self.pos - n)
-
-    def text(self, what: str, lo: int, hi: int) -> str:
-        (n,) = self.unpack("<H", what)
-        _need(n <= 4 * hi, "too_large", lambda: f"{what} is {n} bytes")
-        try:
-            s = str(self.take(n, what), "utf-8")
-        except UnicodeDecodeError as exc:
-            raise DecodeError("bad_text", f"{what} is not UTF-8 ({exc.reason})") from None
-        _text(what, s, lo, hi)
-        return s
-
-    def array(self, what: str, dtype: str, shape: tuple) -> np.ndarray:
-        """A read-only view; its dtype and shape must be exactly `dtype` and `shape`."""
-        code, ndim = self.unpack("<BB", what)
-        dt = np.dtype(dtype)
-        _need(_DTYPES.get(code) == dt, "bad_dtype", lambda: f"{what}: dtype code {code}, want {dtype}")
-        _need(ndim == len(shape), "bad_shape", lambda: f"{what}: {ndim} dims, want {len(shape)}")
-        dims = self.unpack(f"<{ndim}I", what)
-        _need(dims == shape, "bad_shape", lambda: f"{what}: shape {dims} != {shape}")
-        return np.frombuffer(self.take(math.prod(dims) * dt.itemsize, what), dtype=dt).reshape(dims)
-
-    def items(self, owner: str, fmt: str) -> dict:
-        (n,) = self.unpack("<H", f"{owner} count")
-        _need(n <= MAX_ITEMS[owner], "too_large", lambda: f"{owner}: {n} entries > {MAX_ITEMS[owner]}")
-        out = {}
-        for _ in range(n):
-            key = self.text(f"{owner} name", 1, MAX_NAME)
-            _need(key not in out, "bad_value", lambda: f"{owner}: duplicate name {key!r}")
-            (out[key],) = self.unpack(fmt, f"{owner}[{key!r}]")
-        return out
-
-
-@dataclass(frozen=True, eq=False, kw_only=True)
-class Message:
-    """Base: the header fields. The bus sets seq/stamp_ns/source_id when it publishes (see `encode`)."""
-
-    seq: int = 0
-    stamp_ns: int = 0
-    source_id: int = 0
-    TYPE: ClassVar[int] = 0
-
-    def encode(self, *, seq: int | None = None, stamp_ns: int | None = None, source_id: int | None = None) -> bytes:
-        """Validate and serialise; header fields given here override the message's own. ValueError if invalid."""
-        try:
-            self._check()
-            w = _Writer()
-            self._write(w)
-            body_len = sum(p.nbytes if isinstance(p, memoryview) else len(p) for p in w.parts)
-            head = HEADER.pack(MAGIC, SCHEMA_VERSION, self.TYPE, self.seq if seq is None else seq,
-                               self.stamp_ns if stamp_ns is None else stamp_ns,
-                               self.source_id if source_id is None else source_id, body_len)
-        except (DecodeError, struct.error, TypeError) as exc:
-            raise ValueError(f"cannot encode {type(self).__name__}: {exc}") from None
-        return b"".join([head, *w.parts])
-
-    def _check(self) -> None: ...
-
-    def _write(self, w: _Writer) -> None: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -204,10 +74,6 @@ class CameraFrame(Message):
     frame_seq: int = 0  # device frame number (gaps here = camera drops; header seq gaps = bus drops)
     TYPE: ClassVar[int] = 1
 
-    @property
-    def publish_ns(self) -> int:
-        return self.stamp_ns
-
     @classmethod
     def from_frame(cls, f: Frame, **hdr) -> CameraFrame:
         return cls(camera_id=f.camera_id, intrinsics=f.intrinsics, capture_ns=f.capture_ns, color=f.color,
@@ -217,19 +83,19 @@ class CameraFrame(Message):
         return Frame(self.color, self.depth, self.intrinsics, self.camera_id, self.frame_seq, self.capture_ns)
 
     def _check(self):
-        _text("camera_id", self.camera_id, 1, MAX_NAME)
-        _need(self.color is not None or self.depth is not None, "bad_value", "a frame needs colour or depth")
+        check_text("camera_id", self.camera_id, 1, MAX_NAME)
+        need(self.color is not None or self.depth is not None, "bad_value", "a frame needs colour or depth")
         k = self.intrinsics
         h, w = k.height, k.width
-        _need(1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE, "too_large", lambda: f"image {w}x{h}")
+        need(1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE, "too_large", lambda: f"image {w}x{h}")
         for name, a, dt, shape in (("color", self.color, "u1", (h, w, 3)), ("depth", self.depth, "<u2", (h, w))):
             if a is not None:
-                _need(isinstance(a, np.ndarray) and a.dtype == np.dtype(dt), "bad_dtype", f"{name} must be {dt}")
-                _need(a.shape == shape, "bad_shape", lambda: f"{name} shape {a.shape} != {shape} (from intrinsics)")
-        _finite("intrinsics", (k.fx, k.fy, k.cx, k.cy))
-        _need(k.fx > 0 and k.fy > 0, "bad_value", lambda: f"focal lengths must be > 0, got {k.fx}, {k.fy}")
-        _time("capture_ns", self.capture_ns)
-        _need(0 <= self.frame_seq < 2**64, "bad_value", "frame_seq out of range")
+                need(isinstance(a, np.ndarray) and a.dtype == np.dtype(dt), "bad_dtype", f"{name} must be {dt}")
+                need(a.shape == shape, "bad_shape", lambda: f"{name} shape {a.shape} != {shape} (from intrinsics)")
+        check_finite("intrinsics", (k.fx, k.fy, k.cx, k.cy))
+        need(k.fx > 0 and k.fy > 0, "bad_value", lambda: f"focal lengths must be > 0, got {k.fx}, {k.fy}")
+        check_time("capture_ns", self.capture_ns)
+        need(0 <= self.frame_seq < 2**64, "bad_value", "frame_seq out of range")
 
     def _write(self, w):
         k = self.intrinsics
@@ -241,10 +107,10 @@ class CameraFrame(Message):
                 w.array(a)
 
     @classmethod
-    def _read(cls, r: _Reader, hdr: dict):
+    def _read(cls, r: Reader, hdr: dict):
         cap, fseq, h, w, flags, fx, fy, cx, cy = r.unpack("<qQHHB4d", "CameraFrame fields")
-        _need(flags in (1, 2, 3), "bad_value", lambda: f"flags = {flags}")
-        _need(1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE, "too_large", lambda: f"image {w}x{h}")
+        need(flags in (1, 2, 3), "bad_value", lambda: f"flags = {flags}")
+        need(1 <= h <= MAX_IMAGE_SIDE and 1 <= w <= MAX_IMAGE_SIDE, "too_large", lambda: f"image {w}x{h}")
         cid = r.text("camera_id", 1, MAX_NAME)
         color = r.array("color", "u1", (h, w, 3)) if flags & 1 else None
         depth = r.array("depth", "<u2", (h, w)) if flags & 2 else None
@@ -276,16 +142,16 @@ class RobotState(Message):
 
     def _flat(self) -> list[float]:
         vecs = [np.asarray(v, dtype=float) for v in (self.q, self.qd, self.tcp_pose, self.target_q)]
-        _need(all(v.shape == (6,) for v in vecs), "bad_shape", "q, qd, tcp_pose, target_q must each be (6,)")
+        need(all(v.shape == (6,) for v in vecs), "bad_shape", "q, qd, tcp_pose, target_q must each be (6,)")
         return np.concatenate(vecs).tolist()
 
     def _check(self):  # pure-Python finiteness: 25 floats, cheaper than numpy's per-call overhead
         ok = all(map(math.isfinite, self._flat())) and math.isfinite(self.speed_scaling)
-        _need(ok, "non_finite", "q/qd/tcp_pose/target_q/speed_scaling has NaN/Inf")
-        _need(0.0 <= self.speed_scaling <= 1.0, "bad_value", "speed_scaling not in [0, 1]")
-        _need(self.robot_mode in _UR_ROBOT_MODES, "bad_value", lambda: f"robot_mode = {self.robot_mode}")
-        _need(self.safety_mode in _UR_SAFETY_MODES, "bad_value", lambda: f"safety_mode = {self.safety_mode}")
-        _time("timestamp_ns", self.timestamp_ns)
+        need(ok, "non_finite", "q/qd/tcp_pose/target_q/speed_scaling has NaN/Inf")
+        need(0.0 <= self.speed_scaling <= 1.0, "bad_value", "speed_scaling not in [0, 1]")
+        need(self.robot_mode in _UR_ROBOT_MODES, "bad_value", lambda: f"robot_mode = {self.robot_mode}")
+        need(self.safety_mode in _UR_SAFETY_MODES, "bad_value", lambda: f"safety_mode = {self.safety_mode}")
+        check_time("timestamp_ns", self.timestamp_ns)
 
     def _write(self, w):
         w.pack(self._FMT, *self._flat(), self.timestamp_ns, self.robot_mode, self.safety_mode, self.speed_scaling)
@@ -293,7 +159,7 @@ class RobotState(Message):
     @classmethod
     def _read(cls, r, hdr):
         *v, ts, rm, sm, ss = r.unpack(cls._FMT, "RobotState fields")
-        _need(rm in _UR_ROBOT_MODES and sm in _UR_SAFETY_MODES, "bad_value", lambda: f"modes {rm}/{sm}: not UR codes")
+        need(rm in _UR_ROBOT_MODES and sm in _UR_SAFETY_MODES, "bad_value", lambda: f"modes {rm}/{sm}: not UR codes")
         a = np.array(v).reshape(4, 6)
         return cls(q=a[0], qd=a[1], tcp_pose=a[2], target_q=a[3], timestamp_ns=ts, robot_mode=RobotMode(rm),
                    safety_mode=SafetyMode(sm), speed_scaling=ss, **hdr)
@@ -319,9 +185,9 @@ class GripperStatus(Message):
                             self.is_activated)
 
     def _check(self):
-        _finite("position/target", (self.position, self.target))
-        _need(0 <= self.position <= 1 and 0 <= self.target <= 1, "bad_value", "position/target not in [0, 1]")
-        _time("timestamp_ns", self.timestamp_ns)
+        check_finite("position/target", (self.position, self.target))
+        need(0 <= self.position <= 1 and 0 <= self.target <= 1, "bad_value", "position/target not in [0, 1]")
+        check_time("timestamp_ns", self.timestamp_ns)
 
     def _write(self, w):
         w.pack("<ddqBBB", self.position, self.target, self.timestamp_ns, bool(self.is_moving),
@@ -330,7 +196,7 @@ class GripperStatus(Message):
     @classmethod
     def _read(cls, r, hdr):
         pos, tgt, ts, mv, obj, act = r.unpack("<ddqBBB", "GripperStatus fields")
-        _need({mv, obj, act} <= {0, 1}, "bad_value", "booleans must be 0 or 1")
+        need({mv, obj, act} <= {0, 1}, "bad_value", "booleans must be 0 or 1")
         return cls(position=pos, target=tgt, is_moving=bool(mv), object_detected=bool(obj), timestamp_ns=ts,
                    is_activated=bool(act), **hdr)
 
@@ -349,17 +215,17 @@ class ActionChunk(Message):
     TYPE: ClassVar[int] = 4
 
     def _check(self):
-        _need(self.kind in ACTION_KINDS, "bad_value", lambda: f"kind = {self.kind!r}, want one of {list(ACTION_KINDS)}")
+        need(self.kind in ACTION_KINDS, "bad_value", lambda: f"kind = {self.kind!r}, want one of {list(ACTION_KINDS)}")
         a, t, dim = np.asarray(self.actions), np.asarray(self.times_ns), ACTION_KINDS[self.kind][1]
-        _need(a.ndim == 2 and a.shape[1] == dim, "bad_shape", lambda: f"actions shape {a.shape}, want (N, {dim})")
-        _need(1 <= a.shape[0] <= MAX_CHUNK, "too_large", lambda: f"{a.shape[0]} actions, allowed 1..{MAX_CHUNK}")
-        _need(t.shape == (a.shape[0],), "bad_shape", lambda: f"times_ns shape {t.shape} != ({a.shape[0]},)")
-        _need(t.dtype.kind in "iu", "bad_dtype", "times_ns must be integers (ns)")
-        _finite("actions", a)
-        _time("obs_time_ns", self.obs_time_ns)
-        _need(bool((t >= 0).all()), "bad_value", "action times must be >= 0 ns")
-        _need(bool((t[1:] > t[:-1]).all()), "non_monotonic", "action times must strictly increase")
-        _need(int(t[0]) >= self.obs_time_ns, "non_monotonic", "first action time precedes its observation")
+        need(a.ndim == 2 and a.shape[1] == dim, "bad_shape", lambda: f"actions shape {a.shape}, want (N, {dim})")
+        need(1 <= a.shape[0] <= MAX_CHUNK, "too_large", lambda: f"{a.shape[0]} actions, allowed 1..{MAX_CHUNK}")
+        need(t.shape == (a.shape[0],), "bad_shape", lambda: f"times_ns shape {t.shape} != ({a.shape[0]},)")
+        need(t.dtype.kind in "iu", "bad_dtype", "times_ns must be integers (ns)")
+        check_finite("actions", a)
+        check_time("obs_time_ns", self.obs_time_ns)
+        need(bool((t >= 0).all()), "bad_value", "action times must be >= 0 ns")
+        need(bool((t[1:] > t[:-1]).all()), "non_monotonic", "action times must strictly increase")
+        need(int(t[0]) >= self.obs_time_ns, "non_monotonic", "first action time precedes its observation")
 
     def _write(self, w):
         w.pack("<qBH", self.obs_time_ns, ACTION_KINDS[self.kind][0], len(self.times_ns))
@@ -370,8 +236,8 @@ class ActionChunk(Message):
     def _read(cls, r, hdr):
         obs, code, n = r.unpack("<qBH", "ActionChunk fields")
         kind = next((k for k, (c, _) in ACTION_KINDS.items() if c == code), None)
-        _need(kind is not None, "bad_value", lambda: f"action kind code {code}")
-        _need(1 <= n <= MAX_CHUNK, "too_large", lambda: f"{n} actions, allowed 1..{MAX_CHUNK}")
+        need(kind is not None, "bad_value", lambda: f"action kind code {code}")
+        need(1 <= n <= MAX_CHUNK, "too_large", lambda: f"{n} actions, allowed 1..{MAX_CHUNK}")
         actions = r.array("actions", "<f8", (n, ACTION_KINDS[kind][1]))
         return cls(actions=actions, times_ns=r.array("times_ns", "<i8", (n,)), obs_time_ns=obs, kind=kind, **hdr)
 
@@ -383,8 +249,8 @@ class LanguageCommand(Message):
     TYPE: ClassVar[int] = 5
 
     def _check(self):
-        _text("command_id", self.command_id, 0, MAX_NAME)
-        _text("text", self.text, 1, MAX_TEXT)
+        check_text("command_id", self.command_id, 0, MAX_NAME)
+        check_text("text", self.text, 1, MAX_TEXT)
 
     def _write(self, w):
         w.text(self.command_id)
@@ -414,13 +280,13 @@ class StatusEvent(Message):
         return cls(kind=ev.kind, severity=ev.severity, message=ev.message[:MAX_TEXT], values=vals, **hdr)
 
     def _check(self):
-        _text("kind", self.kind, 1, MAX_NAME)
-        _need(self.severity in SEVERITIES, "bad_value", lambda: f"severity {self.severity!r} not in {SEVERITIES}")
-        _text("message", self.message, 0, MAX_TEXT)
-        _need(len(self.values) <= MAX_ITEMS["StatusEvent"], "too_large", lambda: f"{len(self.values)} values")
+        check_text("kind", self.kind, 1, MAX_NAME)
+        need(self.severity in SEVERITIES, "bad_value", lambda: f"severity {self.severity!r} not in {SEVERITIES}")
+        check_text("message", self.message, 0, MAX_TEXT)
+        need(len(self.values) <= MAX_ITEMS["StatusEvent"], "too_large", lambda: f"{len(self.values)} values")
         for k in self.values:
-            _text("value name", k, 1, MAX_NAME)
-        _finite("values", np.fromiter(self.values.values(), float, len(self.values)))
+            check_text("value name", k, 1, MAX_NAME)
+        check_finite("values", np.fromiter(self.values.values(), float, len(self.values)))
 
     def _write(self, w):
         w.pack("<B", SEVERITIES.index(self.severity))
@@ -431,7 +297,7 @@ class StatusEvent(Message):
     @classmethod
     def _read(cls, r, hdr):
         (sev,) = r.unpack("<B", "severity")
-        _need(sev < len(SEVERITIES), "bad_value", lambda: f"severity code {sev}")
+        need(sev < len(SEVERITIES), "bad_value", lambda: f"severity code {sev}")
         kind, msg = r.text("kind", 1, MAX_NAME), r.text("message", 0, MAX_TEXT)
         return cls(kind=kind, severity=SEVERITIES[sev], message=msg, values=r.items("StatusEvent", "<d"), **hdr)
 
@@ -442,10 +308,10 @@ class Telemetry(Message):
     TYPE: ClassVar[int] = 7
 
     def _check(self):
-        _need(len(self.durations_ns) <= MAX_ITEMS["Telemetry"], "too_large", lambda: f"{len(self.durations_ns)} stages")
+        need(len(self.durations_ns) <= MAX_ITEMS["Telemetry"], "too_large", lambda: f"{len(self.durations_ns)} stages")
         for k, v in self.durations_ns.items():
-            _text("stage name", k, 1, MAX_NAME)
-            _need(0 <= int(v) < 2**63, "bad_value", lambda: f"duration of {k!r} = {v} must be >= 0")
+            check_text("stage name", k, 1, MAX_NAME)
+            need(0 <= int(v) < 2**63, "bad_value", lambda: f"duration of {k!r} = {v} must be >= 0")
 
     def _write(self, w):
         w.items({k: int(v) for k, v in self.durations_ns.items()}, "<q")
@@ -462,15 +328,15 @@ MESSAGE_TYPES: dict[int, type[Message]] = {c.TYPE: c for c in (CameraFrame, Robo
 def decode_header(data) -> tuple[int, int, int, int]:
     """(msg_type, seq, stamp_ns, source_id), after checking magic, version, type and the body length."""
     n = len(data)
-    _need(n >= HEADER.size, "truncated", lambda: f"{n} bytes < {HEADER.size}-byte header")
+    need(n >= HEADER.size, "truncated", lambda: f"{n} bytes < {HEADER.size}-byte header")
     magic, ver, mtype, seq, stamp, src, body_len = HEADER.unpack_from(data)
-    _need(magic == MAGIC, "bad_magic", lambda: f"{bytes(magic)!r}")
-    _need(ver == SCHEMA_VERSION, "bad_version", lambda: f"schema {ver}, this build reads {SCHEMA_VERSION}")
-    _need(mtype in MESSAGE_TYPES, "bad_type", lambda: f"message type {mtype}")
-    _need(body_len <= MAX_BODY, "too_large", lambda: f"body of {body_len} bytes")
-    _need(n - HEADER.size >= body_len, "truncated", lambda: f"{n - HEADER.size} of {body_len} body bytes")
-    _need(n - HEADER.size == body_len, "oversize", lambda: f"{n - HEADER.size - body_len} bytes after the body")
-    _time("stamp_ns", stamp)
+    need(magic == MAGIC, "bad_magic", lambda: f"{bytes(magic)!r}")
+    need(ver == SCHEMA_VERSION, "bad_version", lambda: f"schema {ver}, this build reads {SCHEMA_VERSION}")
+    need(mtype in MESSAGE_TYPES, "bad_type", lambda: f"message type {mtype}")
+    need(body_len <= MAX_BODY, "too_large", lambda: f"body of {body_len} bytes")
+    need(n - HEADER.size >= body_len, "truncated", lambda: f"{n - HEADER.size} of {body_len} body bytes")
+    need(n - HEADER.size == body_len, "oversize", lambda: f"{n - HEADER.size - body_len} bytes after the body")
+    check_time("stamp_ns", stamp)
     return mtype, seq, stamp, src
 
 
@@ -479,9 +345,9 @@ def decode(data) -> Message:
     try:
         buf = memoryview(data).cast("B")
         mtype, seq, stamp, src = decode_header(buf)
-        r = _Reader(buf, HEADER.size)
+        r = Reader(buf, HEADER.size)
         msg = MESSAGE_TYPES[mtype]._read(r, {"seq": seq, "stamp_ns": stamp, "source_id": src})
-        _need(r.pos == len(buf), "oversize", lambda: f"{len(buf) - r.pos} bytes after the {type(msg).__name__} body")
+        need(r.pos == len(buf), "oversize", lambda: f"{len(buf) - r.pos} bytes after the {type(msg).__name__} body")
         msg._check()
         return msg
     except DecodeError:

@@ -5,7 +5,7 @@
     r = f.step(desired_q, measured_q, measured_qd, now, command_time)   # r.q is safe to send
 
 Imports are lazy: `import safety` loads nothing heavy (no MuJoCo); each name loads its module on first use.
-`safety/` imports only numpy, mujoco (collision guard) and sim.robot / sim.kinematics / sim.config / sim.scene.
+`safety/` imports only numpy, mujoco (collision guard) and sim.robot / sim.rotations / sim.config / sim.scene.
 """
 
 from __future__ import annotations

@@ -45,7 +45,7 @@ def parse_pose(x):
             return None
         return tuple(arr[:3, 3].tolist()), tuple(R.ravel().tolist())
     if arr.shape == (6,):
-        from sim.kinematics import rotvec_to_matrix
+        from sim.rotations import rotvec_to_matrix
 
         return tuple(arr[:3].tolist()), tuple(rotvec_to_matrix(arr[3:]).ravel().tolist())
     if arr.shape == (7,):

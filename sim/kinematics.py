@@ -8,7 +8,9 @@ Poses use UR's axis-angle (rotation vector) convention, as in `getActualTCPPose`
 
 The single-configuration calls (`fk`, `fk_flange`, `jacobian`, `ik_all`, `ik`) run in plain Python floats
 with `math` (~6 us for fk, ~50 us for ik, against ~100 / ~600 us through numpy's per-call overhead on 4x4
-arrays); `fk_batch` / `frames_batch` and `_solve_numpy` are the batched numpy forms they are tested against.
+arrays); `fk_batch` / `frames_batch` and `_solve_numpy` are the batched numpy forms they are tested against,
+inherited from `sim.kinematics_numpy.NumpyKinematics`. The rotation-vector and pose helpers live in
+`sim.rotations` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -17,10 +19,16 @@ from math import acos, atan2, cos, hypot, isfinite, pi, sin, sqrt
 
 import numpy as np
 
-from sim.robot import RobotVariant, get_variant
+from sim.kinematics_numpy import SINGULAR, TOL, NumpyKinematics
+from sim.robot import RobotVariant
+from sim.rotations import (  # noqa: F401 - re-exported: `from sim.kinematics import rotvec_to_matrix` etc.
+    matrix_to_pose,
+    matrix_to_rotvec,
+    pose_to_matrix,
+    rotvec_to_matrix,
+    wrap_angle,
+)
 
-_SINGULAR = 1e-10  # |sin q5| below this: wrist axes 4 and 6 align, q4 + q6 is all that is defined
-_TOL = 1e-9  # slack on acos arguments and joint limits for targets exactly on a boundary
 _TWO_PI = 2 * pi
 _HALF_PI = pi / 2
 _NAN_ROW = [float("nan")] * 6
@@ -28,88 +36,6 @@ _NAN_ROW = [float("nan")] * 6
 
 class UnreachableError(ValueError):
     """The target pose has no inverse-kinematics solution for this arm; the message says why and what to do."""
-
-
-def wrap_angle(a):
-    """Wrap angles to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - np.asarray(a, dtype=float), 2 * np.pi)
-
-
-def rotvec_to_matrix(rotvec) -> np.ndarray:
-    """Rodrigues' formula, with a Taylor expansion near 0 so tiny rotations stay exact."""
-    r = np.asarray(rotvec, dtype=float)
-    th = np.linalg.norm(r)
-    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-    if th < 1e-6:
-        a, b = 1.0 - th**2 / 6.0, 0.5 - th**2 / 24.0
-    else:
-        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th**2
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def matrix_to_rotvec(R) -> np.ndarray:
-    """Rotation vector (angle in [0, pi]) of a rotation matrix, via a Shepperd quaternion.
-
-    Going through the quaternion keeps the result accurate near pi, where the usual
-    acos((trace - 1) / 2) / skew-part formula loses the axis.
-    """
-    R = np.asarray(R, dtype=float)
-    tr = np.trace(R)
-    i = int(np.argmax([tr, R[0, 0], R[1, 1], R[2, 2]]))
-    if i == 0:
-        w = 0.5 * np.sqrt(max(1.0 + tr, 0.0))
-        v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (4 * w)
-    else:
-        j, k = i % 3, (i + 1) % 3  # i-1 is the dominant axis; (i-1, j, k) cyclic
-        m = i - 1
-        vm = 0.5 * np.sqrt(max(1.0 + 2 * R[m, m] - tr, 0.0))
-        v = np.empty(3)
-        v[m] = vm
-        v[j] = (R[j, m] + R[m, j]) / (4 * vm)
-        v[k] = (R[k, m] + R[m, k]) / (4 * vm)
-        w = (R[k, j] - R[j, k]) / (4 * vm)
-    if w < 0:
-        w, v = -w, -v  # the short way round: angle in [0, pi]
-    s = np.linalg.norm(v)
-    if s < 1e-12:
-        return 2.0 * v / max(w, 1e-300)  # theta ~ 2 s / w for tiny rotations
-    return 2.0 * np.arctan2(s, w) * v / s
-
-
-def pose_to_matrix(pos, rotvec=None) -> np.ndarray:
-    """4x4 transform from a position and rotation vector, or from one UR pose [x, y, z, rx, ry, rz]."""
-    pos = np.asarray(pos, dtype=float)
-    if rotvec is None:
-        pos, rotvec = pos[:3], pos[3:6]
-    T = np.eye(4)
-    T[:3, :3] = rotvec_to_matrix(rotvec)
-    T[:3, 3] = pos
-    return T
-
-
-def matrix_to_pose(T) -> tuple[np.ndarray, np.ndarray]:
-    """(position, rotation vector) of a 4x4 transform; np.concatenate them for a UR pose."""
-    T = np.asarray(T, dtype=float)
-    return T[:3, 3].copy(), matrix_to_rotvec(T[:3, :3])
-
-
-def _dh(theta, d, a, alpha) -> np.ndarray:
-    """Standard DH transforms Rz(theta) Tz(d) Tx(a) Rx(alpha), batched over theta's shape."""
-    theta = np.asarray(theta, dtype=float)
-    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
-    T = np.zeros(theta.shape + (4, 4))
-    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2], T[..., 0, 3] = ct, -st * ca, st * sa, a * ct
-    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2], T[..., 1, 3] = st, ct * ca, -ct * sa, a * st
-    T[..., 2, 1], T[..., 2, 2], T[..., 2, 3] = sa, ca, d
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    Ti = np.eye(4)
-    Ti[:3, :3] = T[:3, :3].T
-    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-    return Ti
 
 
 def _finite(x: np.ndarray) -> bool:
@@ -129,16 +55,11 @@ def _to_matrix(F: tuple) -> np.ndarray:
     return np.array([xx, yx, zx, px, xy, yy, zy, py, xz, yz, zz, pz, 0.0, 0.0, 0.0, 1.0]).reshape(4, 4)
 
 
-class Kinematics:
+class Kinematics(NumpyKinematics):
     """FK, all-branch analytic IK and the Jacobian of one UR variant with a fixed flange->TCP transform."""
 
     def __init__(self, variant: RobotVariant | str = "ur5e", tcp_offset=None):
-        self.variant = get_variant(variant) if isinstance(variant, str) else variant
-        v = self.variant
-        self.d, self.a, self.alpha = v.dh_d, v.dh_a, v.dh_alpha
-        self.tcp_offset = np.eye(4) if tcp_offset is None else np.asarray(tcp_offset, dtype=float).copy()
-        self._tcp_inv = _inv(self.tcp_offset)
-        self.lower, self.upper = np.array(v.joint_lower), np.array(v.joint_upper)
+        super().__init__(variant, tcp_offset)
         # Plain-float copies for the single-configuration paths (fk, fk_flange, jacobian, ik_all, ik), which
         # write the chain out in scalar `math`: numpy's per-call overhead on 4x4 arrays dominates otherwise.
         # They rely on the UR structure (alpha = [pi/2, 0, 0, pi/2, -pi/2, 0], a1 = a4 = a5 = a6 = 0, as the
@@ -151,8 +72,8 @@ class Kinematics:
         self._tcp = [float(x) for x in self.tcp_offset[:3].ravel()]  # row-major 3x4
         self._tcp_inv_l = [float(x) for x in self._tcp_inv[:3].ravel()]
         self._tcp_rot_eye = bool((self.tcp_offset[:3, :3] == np.eye(3)).all())
-        self._lo = [float(x) - _TOL for x in self.lower]
-        self._hi = [float(x) + _TOL for x in self.upper]
+        self._lo = [float(x) - TOL for x in self.lower]
+        self._hi = [float(x) + TOL for x in self.upper]
         self._lower_l, self._upper_l = self.lower.tolist(), self.upper.tolist()
 
     @classmethod
@@ -162,23 +83,7 @@ class Kinematics:
         T[2, 3] = z
         return cls(variant, T)
 
-    # ---- forward kinematics -------------------------------------------------------------------------
-    def frames_batch(self, Q) -> np.ndarray:
-        """(N, 7, 4, 4): base->frame_i for i = 0..6 (frame 6 is the flange)."""
-        Q = np.atleast_2d(np.asarray(Q, dtype=float))
-        out = np.empty((Q.shape[0], 7, 4, 4))
-        out[:, 0] = np.eye(4)
-        for i in range(6):
-            out[:, i + 1] = out[:, i] @ _dh(Q[:, i], self.d[i], self.a[i], self.alpha[i])
-        return out
-
-    def fk_flange_batch(self, Q) -> np.ndarray:
-        return self.frames_batch(Q)[:, 6]
-
-    def fk_batch(self, Q) -> np.ndarray:
-        """(N, 6) joint vectors -> (N, 4, 4) base->TCP transforms."""
-        return self.fk_flange_batch(Q) @ self.tcp_offset
-
+    # ---- forward kinematics (batched forms: NumpyKinematics) --------------------------------------
     def fk_flange(self, q) -> np.ndarray:
         """Base->flange 4x4 transform at joint angles q."""
         q = np.asarray(q, dtype=float).reshape(6)
@@ -267,64 +172,6 @@ class Kinematics:
                 px, py, pz)
 
     # ---- inverse kinematics -------------------------------------------------------------------------
-    def _solve_numpy(self, T, q6_hint: float) -> tuple[np.ndarray, np.ndarray, str]:
-        """All 8 branches for TCP pose T; index = 4*shoulder + 2*wrist + elbow. Returns (Q, valid, why).
-
-        The reference implementation with numpy 4x4 products: `_solve` computes the same in scalar math
-        (~10x faster) and falls back to this one for non-finite input; tests hold the two together.
-        """
-        d, a, al = self.d, self.a, self.alpha
-        name = self.variant.name
-        T06 = np.asarray(T, dtype=float) @ self._tcp_inv
-        R, p = T06[:3, :3], T06[:3, 3]
-        Q = np.full((8, 6), np.nan)
-        p05 = p - d[5] * R[:, 2]  # wrist centre: the axis-5 point
-        r = np.hypot(p05[0], p05[1])
-        if r < d[3] - _TOL:
-            return Q, np.zeros(8, bool), (
-                f"the wrist centre would be {r:.3f} m from the base z axis, closer than the {name}'s shoulder "
-                f"offset d4 = {d[3]:.4f} m allows; move the target away from the base axis")
-        psi = np.arccos(min(d[3] / r, 1.0))
-        phi = np.arctan2(p05[1], p05[0])
-        L_bad = None
-        for s_i, sgn1 in enumerate((1.0, -1.0)):
-            q1 = phi + sgn1 * psi + np.pi / 2
-            s1, c1 = np.sin(q1), np.cos(q1)
-            n = np.array([s1, -c1, 0.0])  # normal of the arm plane
-            c5 = R[:, 2] @ n
-            x, y = R[:, 0] @ n, -(R[:, 1] @ n)
-            s5abs = np.hypot(x, y)  # == sqrt(1 - c5^2), but accurate near the singularity
-            for w_i, sgn5 in enumerate((1.0, -1.0)):
-                q5 = np.arctan2(sgn5 * s5abs, c5)
-                q6 = q6_hint if s5abs < _SINGULAR else np.arctan2(sgn5 * y, sgn5 * x)
-                T01 = _dh(q1, d[0], a[0], al[0])
-                T46 = _dh(q5, d[4], a[4], al[4]) @ _dh(q6, d[5], a[5], al[5])
-                T14 = _inv(T01) @ T06 @ _inv(T46)
-                px, py = T14[0, 3], T14[1, 3]  # frame 1's x-y plane is the arm plane
-                L = np.hypot(px, py)  # shoulder joint to wrist-1 axis, in the arm plane
-                c3 = (L**2 - a[1] ** 2 - a[2] ** 2) / (2 * a[1] * a[2])
-                if abs(c3) > 1 + _TOL:
-                    L_bad = L
-                    continue
-                for e_i, sgn3 in enumerate((1.0, -1.0)):
-                    q3 = sgn3 * np.arccos(np.clip(c3, -1.0, 1.0))
-                    q2 = np.arctan2(py, px) - np.arctan2(a[2] * np.sin(q3), a[1] + a[2] * np.cos(q3))
-                    T13 = _dh(q2, d[1], a[1], al[1]) @ _dh(q3, d[2], a[2], al[2])
-                    T34 = _inv(T13) @ T14
-                    q4 = np.arctan2(T34[1, 0], T34[0, 0])
-                    Q[4 * s_i + 2 * w_i + e_i] = wrap_angle([q1, q2, q3, q4, q5, q6])
-        valid = ~np.isnan(Q).any(axis=1)
-        why = ""
-        if not valid.any() and L_bad is not None:
-            reach, inner = abs(a[1]) + abs(a[2]), abs(abs(a[1]) - abs(a[2]))
-            dist = np.linalg.norm(np.asarray(T)[:3, 3])
-            side = "at most" if L_bad > reach else "at least"
-            why = (f"target {dist:.3f} m from the base origin puts the wrist {L_bad:.3f} m from the shoulder "
-                   f"joint; the {name}'s upper arm + forearm reach {side} "
-                   f"{reach if L_bad > reach else inner:.3f} m there; "
-                   + ("bring the target closer to the base" if L_bad > reach else "move the target farther out"))
-        return Q, valid, why
-
     def _solve(self, T, q6_hint: float) -> tuple[list, str]:
         """All 8 branches for TCP pose T in scalar math: ([8 rows of 6 floats, or None], why).
 
@@ -354,7 +201,7 @@ class Kinematics:
         rows: list = [None] * 8
         p05x, p05y = px - d6 * R02, py - d6 * R12  # wrist centre: the axis-5 point
         r = hypot(p05x, p05y)
-        if r < d4 - _TOL:
+        if r < d4 - TOL:
             return rows, (
                 f"the wrist centre would be {r:.3f} m from the base z axis, closer than the {self.variant.name}'s "
                 f"shoulder offset d4 = {d4:.4f} m allows; move the target away from the base axis")
@@ -374,7 +221,7 @@ class Kinematics:
             q1w = _wrap(q1)
             for w_i, sgn5 in ((0, 1.0), (2, -1.0)):
                 q5 = atan2(sgn5 * s5abs, c5)
-                q6 = q6_hint if s5abs < _SINGULAR else atan2(sgn5 * y, sgn5 * x)
+                q6 = q6_hint if s5abs < SINGULAR else atan2(sgn5 * y, sgn5 * x)
                 cq5, sq5, cq6, sq6 = cos(q5), sin(q5), cos(q6), sin(q6)
                 # T14 = T01^-1 T06 T46^-1: with u = R46^T p46 = (-s6 d5, -c6 d5, d6), p14 = pA - R_A u, and
                 # R14[:, 0] = R_A R46[0, :]^T, R46[0, :] = (c5 c6, -c5 s6, -s5)
@@ -386,7 +233,7 @@ class Kinematics:
                 R14_10 = R20 * e0 + R21 * e1 - R22 * sq5
                 L = hypot(px14, py14)  # shoulder joint to wrist-1 axis, in the arm plane
                 c3 = (L * L - a2sq_a3sq) / two_a2a3
-                if abs(c3) > 1 + _TOL:
+                if abs(c3) > 1 + TOL:
                     L_bad = L
                     continue
                 ang = atan2(py14, px14)

@@ -19,7 +19,7 @@ from runtime.controller import ControllerConfig, ControllerLoop
 from runtime.messages import ActionChunk
 from safety import SafetyFilter, default_limits
 from sim.build import build_world
-from sim.kinematics import rotvec_to_matrix
+from sim.rotations import rotvec_to_matrix
 from sim.twins.rig import SimRig
 
 

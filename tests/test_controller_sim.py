@@ -24,7 +24,7 @@ def make(variant="ur5e", **cfg):
     limits = LIMITS if variant == "ur5e" else default_limits(variant)
     loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits), ControllerConfig(**cfg))
     s = rig.arm.state()
-    from sim.kinematics import rotvec_to_matrix
+    from sim.rotations import rotvec_to_matrix
 
     return rig, loop, s.tcp_pose[:3].copy(), rotvec_to_matrix(s.tcp_pose[3:])
 
@@ -161,7 +161,7 @@ def test_protective_stop_stops_commands_and_recovers_through_the_sequence():
     hooks = RecoveryHooks(notify=notes.append, confirm=lambda: confirm["who"])
     loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits), ControllerConfig(), hooks)
     s = rig.arm.state()
-    from sim.kinematics import rotvec_to_matrix
+    from sim.rotations import rotvec_to_matrix
 
     p0, R = s.tcp_pose[:3].copy(), rotvec_to_matrix(s.tcp_pose[3:])
     path = line(p0, rig.now_ns() * 1e-9 + 0.2)

@@ -9,7 +9,8 @@ import pytest
 
 from runtime.nodes.common import config_from_dict, config_to_dict
 from runtime.nodes.policy_node import PolicyNodeConfig, proprio_of, resize_nearest
-from runtime.nodes.robot_node import GuardedArm, GuardedFilter, RobotNodeConfig
+from runtime.nodes.robot_guards import GuardedArm, GuardedFilter
+from runtime.nodes.robot_node import RobotNodeConfig
 
 
 def test_runtime_never_imports_torch():

@@ -77,7 +77,7 @@ def resize_nearest(img: np.ndarray, H: int, W: int) -> np.ndarray:
 def proprio_of(state, grip_pos: float) -> np.ndarray:
     """datagen.schema proprio (16,): tcp position 3, rot6d 6, gripper 1, q 6."""
     from datagen.schema import rot6d
-    from sim.kinematics import rotvec_to_matrix
+    from sim.rotations import rotvec_to_matrix
 
     p = np.asarray(state.tcp_pose, dtype=float)
     return np.concatenate([p[:3], rot6d(rotvec_to_matrix(p[3:])), [grip_pos], np.asarray(state.q, float)])

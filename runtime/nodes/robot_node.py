@@ -19,9 +19,10 @@ thread), and the main loop (~100 Hz): arm/gripper state, safety events, telemetr
 the task's success predicate (sim), fault injection (sim, for tests), parent watch.
 
 Every servo_j goes through `GuardedArm`, which checks that the target it is given is exactly the safety
-filter's latest output (`GuardedFilter` records it); a mismatch would be a bypass and is counted
-(`report["bypass"]`, expected 0) and refused. Malformed chunk payloads are dropped by the bus decoder
-(counted in `report["chunk_decode_errors"]`) and never reach `ControllerLoop.submit`.
+filter's latest output (`GuardedFilter` records it; both in `runtime.nodes.robot_guards`); a mismatch would
+be a bypass and is counted (`report["bypass"]`, expected 0) and refused. Malformed chunk payloads are
+dropped by the bus decoder (counted in `report["chunk_decode_errors"]`) and never reach
+`ControllerLoop.submit`.
 
 Stop (stop request, launcher death, or an exception): in `finally`, `ControllerLoop.stop()` (decelerate to
 rest through the filter, then servo_stop), then cameras, rig and bus close; the report says whether the
@@ -39,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from runtime.nodes.common import BusSettings, NodeContext, cli_main, percentiles
+from runtime.nodes.robot_guards import GuardedArm, GuardedFilter, Hold
 
 log = logging.getLogger(__name__)
 
@@ -71,73 +73,6 @@ class RobotNodeConfig:
 
 
 CONFIG = RobotNodeConfig
-
-
-class GuardedFilter:
-    """The SafetyFilter, with the output of its latest step recorded (for GuardedArm's check)."""
-
-    def __init__(self, inner):
-        self._inner = inner
-        self.last_q: np.ndarray | None = None
-        self.steps = 0
-
-    def step(self, *args, **kw):
-        r = self._inner.step(*args, **kw)
-        self.last_q = np.array(r.q, dtype=float)
-        self.steps += 1
-        return r
-
-    def __getattr__(self, name):
-        return getattr(self._inner, name)
-
-
-class GuardedArm:
-    """The arm, whose servo_j only passes the safety filter's latest output (anything else: a bypass)."""
-
-    def __init__(self, inner, guard: GuardedFilter):
-        self._inner, self._guard = inner, guard
-        self.servo_sent = 0
-        self.bypass = 0
-
-    def servo_j(self, q, *args, **kw):
-        ref = self._guard.last_q
-        if ref is None or not np.array_equal(np.asarray(q, dtype=float), ref):
-            self.bypass += 1
-            return False
-        self.servo_sent += 1
-        return self._inner.servo_j(q, *args, **kw)
-
-    def __getattr__(self, name):
-        return getattr(self._inner, name)
-
-
-class _Hold:
-    """Hardware without allow_motion: stands in for the controller; never commands anything."""
-
-    state = "hold_no_motion"
-    stopped = True
-
-    def __init__(self):
-        self._events: list = []
-
-    def submit(self, chunk) -> bool:
-        return False
-
-    def estop(self, reason: str = "") -> None: ...
-
-    def drain_events(self) -> list:
-        out, self._events = self._events, []
-        return out
-
-    def start(self) -> None: ...
-
-    def stop(self) -> bool:
-        return True
-
-    class telemetry:  # noqa: N801 - mimics ControllerLoop.telemetry
-        @staticmethod
-        def summary() -> dict:
-            return {}
 
 
 def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
@@ -202,7 +137,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
         safety = GuardedFilter(SafetyFilter(default_limits(variant)))
         arm = GuardedArm(raw_arm, safety)
         if cfg.robot_ip and not cfg.allow_motion:
-            loop = _Hold()
+            loop = Hold()
         else:
             loop = ControllerLoop(arm, gripper, safety, ControllerConfig())
         # ---- bus ---------------------------------------------------------------------------------------

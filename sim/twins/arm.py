@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim.config import spec, validate
-from sim.kinematics import matrix_to_rotvec
 from sim.devices import (
     SERVO_GAIN_RANGE,
     SERVO_LOOKAHEAD_RANGE,
@@ -37,6 +36,7 @@ from sim.devices import (
     check_scalar,
     check_vector,
 )
+from sim.rotations import matrix_to_rotvec
 
 _SETTLE_TOL = 1e-3  # rad: move_j returns once every joint is this close to the goal
 _MAX_ACCEL = 40.0  # rad/s^2, the most any command may ask for
