@@ -21,6 +21,8 @@ from datagen.sandbox import SandboxError, run_check
 from datagen.schema import IMAGE_SIZE, EpisodeData
 from datagen.trajectory import Motion, Segment, execute
 from sim.build import build_episode
+from sim.tasks import Holdout
+from sim.tasks.base import OBJECT_COLORS, SHAPES
 from sim.config import spec
 from sim.state import StateView
 
@@ -47,6 +49,13 @@ class DatagenConfig:
     perturb: float = field(default=0.0, metadata=spec(0.0, 1.0,
                            doc="probability that a place is disturbed (the object dropped on the way), so the "
                                "data holds recoveries; 0 leaves episodes exactly as without it"))
+    holdout_colors: tuple[str, ...] = field(default=(), metadata=spec(choices=OBJECT_COLORS,
+                                            doc="object colours never used (kept for a held-out evaluation)"))
+    holdout_shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES,
+                                            doc="object shapes never used (kept for a held-out evaluation)"))
+
+    def holdout(self) -> Holdout:
+        return Holdout(colors=tuple(self.holdout_colors), shapes=tuple(self.holdout_shapes))
 
 
 def _dropped(motion: Motion, rng: np.random.Generator) -> Motion:
@@ -67,9 +76,12 @@ def _resume_point(plan, index: int, state) -> int:
     return index
 
 
-def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), planner=None) -> EpisodeData:
-    """Generate the episode (task, seed); the same arguments always give the same episode."""
-    ep = build_episode(task, seed, cfg.dr, cfg.fidelity)
+def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), planner=None,
+                holdout: Holdout | None = None) -> EpisodeData:
+    """Generate the episode (task, seed); the same arguments always give the same episode.
+    `holdout` overrides the config's (an evaluation runs the collector on held-out targets with it)."""
+    holdout = holdout or cfg.holdout()
+    ep = build_episode(task, seed, cfg.dr, cfg.fidelity, holdout=holdout)
     world = ep.world
     scene = describe(ep.instance)
     planner = planner or make_planner(cfg.planner, llm_url=cfg.llm_url or None, llm_model=cfg.llm_model or None)
@@ -138,6 +150,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
             "retries": retries, "planner": plan.planner, "dr": ep.dr_record, "attempts": attempts,
             "plan": plan.record(), "task_record": ep.instance.record(), "fidelity": cfg.fidelity,
             "sim_seconds": round(world.time, 3),
+            "holdout": {"colors": list(holdout.colors), "shapes": list(holdout.shapes), "split": holdout.split},
         }
         return recorder.finish(meta)
     finally:

@@ -38,6 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     gen.add_argument("--max-retries", type=int, default=4, help="retries per subtask (default 4)")
     gen.add_argument("--perturb", type=float, default=0.0, metavar="P",
                      help="probability that a place is disturbed (object dropped), so the data holds recoveries")
+    gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
+                     help="never use this object colour (repeatable), so `sudd eval --heldout` can test it")
+    gen.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
+                     help="never use this object shape (repeatable)")
     gen.add_argument("--label", default="ground_truth", choices=("ground_truth", "check"),
                      help="success label for training: the task predicate or the plan's own checks")
     gen.add_argument("--planner", default="offline", choices=("offline", "llm"))
@@ -59,7 +63,7 @@ def _generate(args) -> int:
         return 2
     cfg = load_config(DatagenConfig, {
         "dr": args.dr, "fidelity": args.fidelity, "max_retries": args.max_retries, "label": args.label,
-        "perturb": args.perturb,
+        "perturb": args.perturb, "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
     summary = generate(tasks, args.episodes, args.out, args.workers, partial(run_episode, cfg=cfg),
                        seed_offset=args.seed_offset, ray_address=args.ray)

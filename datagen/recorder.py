@@ -62,6 +62,13 @@ class Recorder:
         self.next_t = self.world.time + self.period
         self.sample()
 
+    def window(self, n: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The newest n samples (images per camera, proprio), oldest first; the first sample repeats before
+        the start, as the training windows pad (a closed-loop evaluation observes through this)."""
+        idx = np.clip(np.arange(len(self._proprio) - n, len(self._proprio)), 0, None)
+        images = {c: np.stack([v[i] for i in idx]) for c, v in self._images.items()}
+        return images, np.stack([self._proprio[i] for i in idx]).astype(np.float32)
+
     def finish(self, meta: dict) -> EpisodeData:
         """Samples so far as an episode; the last step's action is its own (resting) target."""
         self.close()

@@ -15,7 +15,8 @@ label of the subtask running at "now" (not while recovering). Each distinct stri
 frozen MiniLM encoder; samples carry a row of that table.
 
 Speed on 2 cores: low-dimensional arrays are always held in memory, already normalized; images too when
-the dataset fits `max_cache_bytes` (decoding zarr chunks per sample would dominate a CPU training step),
+the dataset fits `max_cache_bytes` (default: half the memory available at start; decoding zarr chunks per
+sample would dominate a CPU training step: measured 0.77 vs 0.45 s per step for 300 pick_place episodes),
 else each sample reads only the chunks its window touches. Augmentation (train only): one random crop per
 camera and window (the same crop for all To frames, so motion between frames stays real) and colour
 jitter (brightness, contrast, saturation); evaluation uses the centre crop, exactly as the exported graph.
@@ -24,6 +25,7 @@ Randomness comes from a per-sample seed (`dataset[(index, seed)]`), so training 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,6 +35,14 @@ import torch
 from datagen.store import Dataset as EpisodeStore
 from policy.config import PolicyConfig
 from policy.normalize import Normalizer
+
+
+def available_memory() -> float:
+    """Bytes of physical memory free now (Linux; 2 GB where the OS does not say)."""
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return 2e9
 
 
 def episode_success(meta: dict) -> bool:
@@ -76,7 +86,7 @@ class PolicyDataset(torch.utils.data.Dataset):
 
     def __init__(self, data: str | Path | EpisodeStore, cfg: PolicyConfig, train: bool = True,
                  normalizer: Normalizer | None = None, embedder: Callable[[list[str]], np.ndarray] | None = None,
-                 include_failures: bool | None = None, max_cache_bytes: float = 2e9):
+                 include_failures: bool | None = None, max_cache_bytes: float | None = None):
         self.store = data if isinstance(data, EpisodeStore) else EpisodeStore(data)
         self.cfg, self.train = cfg, train
         include = self.include_failures = cfg.include_failures if include_failures is None else include_failures
@@ -103,6 +113,8 @@ class PolicyDataset(torch.utils.data.Dataset):
         H, W = cfg.image_size
         nbytes = sum(self.lengths) * len(cfg.cameras) * H * W * 3
         self.images = None
+        if max_cache_bytes is None:
+            max_cache_bytes = 0.5 * available_memory()
         if nbytes <= max_cache_bytes:
             self.images = [{c: self._read(i, c, 0, None) for c in cfg.cameras} for i in self.episodes]
 

@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     from datagen import cli as data_cli
     from datagen import generate_cli
     from policy import cli as policy_cli
-    from runtime import run_cli
+    from runtime import eval_cli, run_cli
     from sim import cli as sim_cli
 
     parser = argparse.ArgumentParser(
@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     data_cli.register(sub)
     policy_cli.register(sub)
     run_cli.register(sub)
+    eval_cli.register(sub)
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
                            description="Run a benchmark area and print its figures; --json prints one JSON object.",

@@ -17,16 +17,14 @@ import pytest
 
 from runtime import bus as B
 from runtime import messages as m
-from runtime.bench_runtime import episode_instruction, make_test_bundle
 from runtime.launch import Launcher, sim_stack
 
 TASK, SEED = "pick_place", 0
 
 
 @pytest.fixture(scope="session")
-def bundle(tmp_path_factory):
-    ins = episode_instruction(TASK, SEED)
-    return make_test_bundle(tmp_path_factory.mktemp("runtime") / "bundle", [ins, "stack the red block on the blue block"])
+def bundle(untrained_bundle):
+    return untrained_bundle
 
 
 class Watch:

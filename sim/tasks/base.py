@@ -95,6 +95,8 @@ class TaskFamily:
     name: ClassVar[str]
     description: ClassVar[str]
     templates: ClassVar[tuple[str, ...]]  # language templates; `{...}` fields filled by `sample`
+    # Phrasings never used to generate data: the evaluation's unseen-command test (same `{...}` fields).
+    paraphrases: ClassVar[tuple[str, ...]] = ()
     max_seconds: ClassVar[float] = 30.0  # a generous episode time limit for oracles and policies
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
@@ -120,6 +122,16 @@ class TaskFamily:
 
     def phrase(self, rng: np.random.Generator, **fields) -> str:
         return str(rng.choice(self.templates)).format(**fields)
+
+    def fields(self, inst: TaskInstance) -> dict[str, str]:
+        """The template fields of an instance (what `sample` filled in)."""
+        return {}
+
+    def paraphrase(self, inst: TaskInstance, rng: np.random.Generator) -> str:
+        """The instance's command in a phrasing the data never used."""
+        if not self.paraphrases:
+            raise ValueError(f"task family {self.name} has no paraphrases")
+        return str(rng.choice(self.paraphrases)).format(**self.fields(inst))
 
 
 def sample_objects(rng: np.random.Generator, dr: DRConfig, holdout: Holdout, count: int, slots: list[Placement],

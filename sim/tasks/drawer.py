@@ -69,6 +69,7 @@ class DrawerOpen(TaskFamily):
     name = "drawer_open"
     description = "Open the cabinet's drawer."
     templates = ("open the drawer", "pull the drawer open", "open the cabinet drawer")
+    paraphrases = ("slide the drawer open", "could you open the drawer", "pull out the drawer")
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
         cab = sample_cabinet(rng, dr)
@@ -99,6 +100,7 @@ class DrawerClose(DrawerOpen):
     name = "drawer_close"
     description = "Close the cabinet's open drawer."
     templates = ("close the drawer", "push the drawer shut", "shut the cabinet drawer")
+    paraphrases = ("slide the drawer closed", "could you close the drawer", "push the drawer in")
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
         inst = super().sample(rng, dr, holdout)

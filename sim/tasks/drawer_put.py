@@ -20,6 +20,13 @@ class PutInDrawer(TaskFamily):
         "place the {obj} inside the drawer, then close the drawer",
         "store the {obj} in the drawer and shut it",
     )
+    paraphrases = (
+        "put away the {obj} in the drawer and close the drawer",
+        "could you stow the {obj} in the drawer and close it",
+    )
+
+    def fields(self, inst: TaskInstance) -> dict[str, str]:
+        return {"obj": inst.obj(inst.params["target"]).phrase}
     max_seconds = 60.0
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:

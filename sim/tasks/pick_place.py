@@ -35,6 +35,15 @@ class PickPlace(TaskFamily):
         "move the {obj} to the {bin} bin",
         "pick up the {obj} and drop it in the {bin} bin",
     )
+    paraphrases = (
+        "could you put the {obj} into the {bin} bin",
+        "the {obj} goes in the {bin} bin",
+        "grab the {obj} and leave it in the {bin} bin",
+        "transfer the {obj} to the {bin} container",
+    )
+
+    def fields(self, inst: TaskInstance) -> dict[str, str]:
+        return {"obj": inst.obj(inst.params["target"]).phrase, "bin": inst.params["bin"].removeprefix("bin_")}
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
         n_bins = int(rng.choice([2, 3]))

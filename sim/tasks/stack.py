@@ -20,6 +20,14 @@ class Stack(TaskFamily):
         "put the {top} on top of the {bottom}",
         "place the {top} onto the {bottom}",
     )
+    paraphrases = (
+        "set the {top} down on the {bottom}",
+        "pile the {top} on the {bottom}",
+        "could you put the {top} onto the {bottom}",
+    )
+
+    def fields(self, inst: TaskInstance) -> dict[str, str]:
+        return {"top": inst.obj(inst.params["top"]).phrase, "bottom": inst.obj(inst.params["bottom"]).phrase}
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
         n = int(rng.integers(2, 5))

@@ -1,0 +1,185 @@
+"""`sudd eval`: closed-loop success of a policy bundle in sim, against the data-collection policy, same seeds.
+
+Each episode is one job (suite, task, seed, who). Results are appended to OUT/results.jsonl as they finish,
+so an interrupted evaluation keeps what it did and a re-run with the same arguments resumes; OUT/summary.json,
+OUT/results.md (the table) and OUT/success.png (the chart) are rewritten at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+EPILOG = """\
+suites (each on seeds OFFSET..OFFSET+N-1; keep OFFSET away from the training seeds):
+  seen        the training distribution: objects and phrasings as in the data
+  heldout     the target object has a colour/shape the data never had (--holdout-color/--holdout-shape,
+              the same ones given to `sudd datagen`)
+  paraphrase  the command in a phrasing the data never used (the task family's `paraphrases`)
+
+the data collector (planner + primitives + verify-and-retry with privileged state, `sudd datagen`'s policy)
+runs on the same seeds for `seen` and `heldout`; it cannot parse unseen phrasings, so not for `paraphrase`.
+
+examples:
+  sudd eval --policy policy/bundles/demo --task pick_place --episodes 50 --dr heavy --seed-offset 100000
+  sudd eval --policy out/bundle --task all --episodes 20 --suite seen --suite paraphrase --workers 2
+  sudd eval --policy out/bundle --task pick_place --episodes 30 --suite heldout --holdout-color purple
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    ev = sub.add_parser("eval", help="closed-loop success of a policy bundle in sim (with 95%% CIs), vs the data "
+                                     "collector on the same seeds",
+                        description="Run a policy bundle in closed loop in sim through the runtime's controller and "
+                                    "the safety layer (runtime.evaluate), count task successes with 95% Wilson "
+                                    "intervals, and compare with the data-collection policy on the same seeds.",
+                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ev.add_argument("--policy", required=True, metavar="BUNDLE", help="policy bundle directory (sudd export)")
+    ev.add_argument("--task", action="append", default=[], help="task family (repeatable) or 'all' (the bundle's "
+                                                                "tasks; default)")
+    ev.add_argument("--episodes", type=int, default=20, help="episodes per task and suite (default 20)")
+    ev.add_argument("--dr", default="heavy", help="DR preset off|light|heavy or a TOML file (default heavy)")
+    ev.add_argument("--seed-offset", type=int, default=100_000, help="first seed (default 100000)")
+    ev.add_argument("--suite", action="append", default=[], choices=["seen", "heldout", "paraphrase"],
+                    help="what to test (repeatable; default: seen)")
+    ev.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
+                    help="colour kept out of the training data (for the heldout suite and to keep it out of `seen`)")
+    ev.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE", help="likewise for shapes")
+    ev.add_argument("--no-collector", action="store_true", help="skip the data-collection comparison")
+    ev.add_argument("--time-limit-factor", type=float, default=1.0,
+                    help="episode budget = task.max_seconds x this (default 1; the collector keeps datagen's 2)")
+    ev.add_argument("--replan-every", type=int, default=1, metavar="TICKS",
+                    help="policy ticks between inferences (1: every tick, as the runtime's policy node)")
+    ev.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    ev.add_argument("--out", type=Path, default=Path("out/eval"), help="results directory (default out/eval)")
+    ev.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ev.set_defaults(func=_eval)
+
+
+def _eval(args) -> int:
+    from policy.bundle import Bundle
+    from runtime.eval_report import markdown_table, plot, summarise
+    from sim.tasks import get_task
+
+    bundle = Bundle.load(args.policy, intra_op_num_threads=1)
+    tasks = bundle.tasks if not args.task or "all" in args.task else [get_task(t).name for t in args.task]
+    if not tasks:
+        raise ValueError(f"{args.policy} records no tasks; name them with --task")
+    suites = args.suite or ["seen"]
+    held = {"colors": tuple(args.holdout_color), "shapes": tuple(args.holdout_shape)}
+    if "heldout" in suites and not (held["colors"] or held["shapes"]):
+        raise ValueError("--suite heldout needs --holdout-color or --holdout-shape (what the data never had)")
+    jobs = []
+    for suite in suites:
+        for task in tasks:
+            for i in range(args.episodes):
+                seed = args.seed_offset + i
+                jobs.append({"suite": suite, "task": task, "seed": seed, "who": "policy"})
+                if not args.no_collector and suite != "paraphrase":
+                    jobs.append({"suite": suite, "task": task, "seed": seed, "who": "collector"})
+    args.out.mkdir(parents=True, exist_ok=True)
+    results_path = args.out / "results.jsonl"
+    done = _read(results_path)
+    key = lambda j: (j["suite"], j["task"], j["seed"], j["who"])  # noqa: E731
+    have = {key(r) for r in done}
+    todo = [j for j in jobs if key(j) not in have]
+    settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
+                "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every}
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="eval", unit="ep")
+    wins = {"policy": 0, "collector": 0}
+    with results_path.open("a") as f:
+        for rec in _run_jobs(todo, settings, args.workers):
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+            wins[rec["who"]] += bool(rec["success"])
+            bar.update(1)
+            bar.set_postfix(policy_ok=wins["policy"], collector_ok=wins["collector"])
+    bar.close()
+    wanted = {key(j) for j in jobs}
+    records = [r for r in _read(results_path) if key(r) in wanted]
+    rows = summarise(records)
+    table = markdown_table(rows)
+    summary = {"settings": settings, "suites": suites, "tasks": tasks, "episodes": args.episodes,
+               "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
+               "bundle": bundle.info()}
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\n{table}\n")
+    png = plot(rows, args.out / "success.png")
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(table)
+        print(f"\n{len(records)} episodes; table {args.out / 'results.md'}, chart {png}, per episode {results_path}")
+    return 0
+
+
+def _read(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass  # a line cut by a kill: that episode runs again
+    return out
+
+
+def _run_jobs(jobs: list[dict], settings: dict, workers: int):
+    if workers <= 1:
+        _init(settings)
+        for j in jobs:
+            yield _job(j)
+        return
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(workers, initializer=_init, initargs=(settings,)) as pool:
+        yield from pool.imap_unordered(_job, jobs)
+
+
+_WORKER: dict = {}
+
+
+def _init(settings: dict) -> None:
+    from policy.bundle import Bundle
+
+    _WORKER.clear()
+    _WORKER.update(settings=settings, bundle=Bundle.load(settings["bundle"], intra_op_num_threads=1))
+
+
+def _job(job: dict) -> dict:
+    from sim.tasks import Holdout
+
+    s = _WORKER["settings"]
+    h = s["holdout"]
+    holdout = Holdout(colors=tuple(h["colors"]), shapes=tuple(h["shapes"]),
+                      split="eval_heldout" if job["suite"] == "heldout" else "train")
+    t0 = time.perf_counter()
+    if job["who"] == "policy":
+        from runtime.evaluate import run_policy_episode
+
+        out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
+                                 paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
+                                 time_limit_factor=s["time_limit_factor"]).record()
+    else:
+        out = _collector(job["task"], job["seed"], s["dr"], holdout)
+    return {**job, **out, "wall_s": round(time.perf_counter() - t0, 2)}
+
+
+def _collector(task: str, seed: int, dr: str, holdout) -> dict:
+    from datagen.episode import DatagenConfig, run_episode
+    from sim.config import load_config
+
+    cfg = load_config(DatagenConfig, {"dr": dr})
+    try:
+        ep = run_episode(task, seed, cfg, holdout=holdout)
+    except Exception as exc:  # a layout the collector cannot even start counts as its failure
+        return {"success": False, "end": f"error: {exc!r}"[:300], "sim_seconds": None}
+    return {"success": bool(ep.meta["success"]), "end": "success" if ep.meta["success"] else "failure",
+            "sim_seconds": ep.meta.get("sim_seconds"), "command": ep.meta["instruction"],
+            "retries": ep.meta.get("retries")}

@@ -1,0 +1,114 @@
+"""Evaluation results: success rates with 95% confidence intervals, a markdown table and a bar chart (PNG).
+
+Rows are (suite, task, who): `who` is "policy" (the bundle, closed loop) or "collector" (the data-collection
+policy: planner + primitives + verify-and-retry, privileged state, on the same seeds). The interval is
+Wilson's score interval: unlike the normal approximation it stays inside [0, 1] and is honest at 0/N and N/N,
+which small evaluations hit often.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+
+Z95 = 1.959963984540054
+SUITES = {
+    "seen": "held-out seeds, training objects and phrasings",
+    "heldout": "held-out seeds, target of a held-out colour/shape",
+    "paraphrase": "held-out seeds, an unseen phrasing of the command",
+}
+
+
+def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """95% Wilson score interval of a binomial proportion; (0, 1) when n = 0."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def summarise(records: list[dict]) -> list[dict]:
+    """Per (suite, task, who): n, successes, rate, 95% CI; plus median time to success and inference p50."""
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for r in records:
+        groups[(r["suite"], r["task"], r["who"])].append(r)
+    rows = []
+    for (suite, task, who), rs in sorted(groups.items(), key=lambda kv: (list(SUITES).index(kv[0][0])
+                                                                       if kv[0][0] in SUITES else 99, kv[0][1:])):
+        k = sum(bool(r["success"]) for r in rs)
+        lo, hi = wilson(k, len(rs))
+        times = sorted(r["sim_seconds"] for r in rs if r["success"] and r.get("sim_seconds") is not None)
+        infer = sorted(r["inference_ms"]["p50"] for r in rs if isinstance(r.get("inference_ms"), dict))
+        rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
+                     "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
+                     "inference_p50_ms": infer[len(infer) // 2] if infer else None})
+    return rows
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """One line per (suite, task): the policy's and the collector's success side by side."""
+    by = {(r["suite"], r["task"], r["who"]): r for r in rows}
+    keys = sorted({(r["suite"], r["task"]) for r in rows},
+                  key=lambda k: (list(SUITES).index(k[0]) if k[0] in SUITES else 99, k[1]))
+    lines = ["| suite | task | policy success [95% CI] | data collector [95% CI] | policy median time to success |",
+             "|---|---|---|---|---|"]
+    for suite, task in keys:
+        pol, col = by.get((suite, task, "policy")), by.get((suite, task, "collector"))
+        t = pol["median_success_s"] if pol else None
+        lines.append(f"| {suite} | {task} | {_cell(pol)} | {_cell(col)} | {'-' if t is None else f'{t:.1f} s'} |")
+    return "\n".join(lines)
+
+
+def _cell(r: dict | None) -> str:
+    if r is None:
+        return "-"
+    lo, hi = r["ci95"]
+    return f"{r['successes']}/{r['n']} = {100 * r['rate']:.0f}% [{100 * lo:.0f}, {100 * hi:.0f}]"
+
+
+def plot(rows: list[dict], out_png: str | Path, title: str = "closed-loop success (95% Wilson CI)") -> Path:
+    """Grouped bars (policy, collector) per (suite, task) with CI whiskers; Pillow only."""
+    from PIL import Image, ImageDraw
+
+    groups = sorted({(r["suite"], r["task"]) for r in rows},
+                    key=lambda k: (list(SUITES).index(k[0]) if k[0] in SUITES else 99, k[1]))
+    by = {(r["suite"], r["task"], r["who"]): r for r in rows}
+    colors = {"policy": (52, 101, 164), "collector": (170, 170, 170)}
+    gw, bw, left, top, h = 150, 50, 60, 40, 260
+    W, H = left + gw * max(1, len(groups)) + 20, top + h + 70
+    img = Image.new("RGB", (W, H), "white")
+    d = ImageDraw.Draw(img)
+    d.text((left, 10), title, fill="black")
+    for k in range(0, 101, 20):
+        y = top + h - h * k / 100
+        d.line([(left - 5, y), (W - 10, y)], fill=(225, 225, 225))
+        d.text((10, y - 6), f"{k}%", fill="black")
+    for g, (suite, task) in enumerate(groups):
+        x0 = left + g * gw + 20
+        for j, who in enumerate(("policy", "collector")):
+            r = by.get((suite, task, who))
+            if r is None:
+                continue
+            x = x0 + j * (bw + 6)
+            y = top + h - h * r["rate"]
+            d.rectangle([x, y, x + bw, top + h], fill=colors[who])
+            lo, hi = (top + h - h * v for v in r["ci95"])
+            cx = x + bw / 2
+            d.line([(cx, lo), (cx, hi)], fill="black", width=2)
+            d.line([(cx - 8, lo), (cx + 8, lo)], fill="black", width=2)
+            d.line([(cx - 8, hi), (cx + 8, hi)], fill="black", width=2)
+            d.text((x + 4, max(top, y - 14)), f"{100 * r['rate']:.0f}%", fill="black")
+        d.text((x0, top + h + 8), task, fill="black")
+        d.text((x0, top + h + 22), suite, fill=(90, 90, 90))
+    ly = H - 22
+    for j, (who, c) in enumerate(colors.items()):
+        d.rectangle([left + j * 160, ly, left + j * 160 + 14, ly + 12], fill=c)
+        d.text((left + j * 160 + 20, ly), "policy (bundle)" if who == "policy" else "data collector", fill="black")
+    out = Path(out_png)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    img.save(out)
+    return out

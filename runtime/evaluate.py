@@ -1,0 +1,156 @@
+"""One closed-loop evaluation episode: a policy bundle drives the sim arm through the runtime's controller.
+
+    out = run_policy_episode(bundle, "pick_place", seed=100_000, dr="heavy")
+    out.success, out.sim_seconds, out.inference_ms
+
+Not a shortcut: every chunk goes through `runtime.controller.ControllerLoop` (latency-compensated
+scheduling, blending, interpolation to the 500 Hz servo rate) and every servo command through
+`safety.SafetyFilter`, into the `SimArm`/`SimGripper` twins of a lockstep `SimRig`, exactly the objects
+`sudd run --sim` drives. What differs from `sudd run --sim` is only how time passes:
+
+* Lockstep, so a run is repeatable and needs no spare cores: the sim does not advance while the policy
+  thinks. To keep the policy's real lag, each inference's measured wall time (on this CPU) is then let pass
+  in sim time before its chunk reaches the controller, and the chunk is stamped from its observation time,
+  as the policy node stamps it.
+* Observations come from `datagen.recorder.Recorder`: the renderer, image size, sensor corruption and
+  proprioception of the training data, sampled at the policy rate. (`sudd run --sim` renders the twins'
+  cameras at their own size and the policy node resizes them; the evaluation removes that variable.)
+
+Success is the task's own predicate (the same one that labels the data), checked at every policy tick; the
+episode ends at success, at the data collector's time budget (task.max_seconds x `time_limit_factor`, 2 as in
+`sudd datagen`), or at a protective stop the controller could not avoid.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from runtime.controller import ControllerConfig, ControllerLoop
+from runtime.messages import ActionChunk
+from safety import SafetyFilter, default_limits
+from sim.build import build_episode
+from sim.tasks import Holdout
+
+
+@dataclass
+class EpisodeOutcome:
+    task: str
+    seed: int
+    command: str
+    instruction: str
+    success: bool
+    sim_seconds: float
+    end: str  # success | timeout | protective_stop
+    chunks: int = 0
+    rejected_chunks: int = 0
+    inference_ms: list[float] = field(default_factory=list)
+    events: dict[str, int] = field(default_factory=dict)
+    target: dict = field(default_factory=dict)  # the target object's colour and shape
+
+    def record(self) -> dict:
+        out = asdict(self)
+        ms = np.asarray(self.inference_ms) if self.inference_ms else np.zeros(1)
+        out["inference_ms"] = {"p50": float(np.median(ms)), "p99": float(np.percentile(ms, 99)), "n": len(self.inference_ms)}
+        return out
+
+
+def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdout: Holdout = Holdout(),
+                       command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
+                       time_limit_factor: float = 2.0, latency_s: float | None = None,
+                       controller: ControllerConfig | None = None) -> EpisodeOutcome:
+    """Run one episode (see the module docstring). `command` overrides the episode's instruction;
+    `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
+    inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
+    of measuring it."""
+    from datagen.recorder import Recorder
+    from sim.twins.rig import SimRig
+
+    ep = build_episode(task, seed, dr, "fast", holdout=holdout)
+    family, inst = ep.task, ep.instance
+    if paraphrase:
+        command = family.paraphrase(inst, np.random.default_rng([seed, 7]))
+    text = command or ep.instruction
+    emb = bundle.embed(text)
+    rng = np.random.default_rng([seed, 11])
+    rig = SimRig(ep.world, "lockstep")
+    rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
+    limits = default_limits(ep.world.variant.name)
+    loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(ep.world.variant.name)),
+                          controller or ControllerConfig())
+    rec = Recorder(ep, image_size=tuple(bundle.image_size))
+    hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
+    per_tick = max(1, round(1.0 / (hz * rig.control_period)))
+    dt_ns = int(round(1e9 / hz))
+    To = bundle.obs_horizon
+    budget = family.max_seconds * time_limit_factor
+    target = _target_of(inst)
+    out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target)
+    events: Counter = Counter()
+    try:
+        rec.start()
+        loop.cycle()  # the controller's first cycle: it now knows the arm's state
+        rig.step(1)
+        tick = 0
+        while rig.world.time < budget:
+            if ep.success():
+                out.success, out.end = True, "success"
+                break
+            if rig.protective_stopped:
+                out.end = "protective_stop"
+                break
+            t_obs = rig.now_ns()
+            lag_cycles = 0
+            if tick % replan_every == 0:
+                images, proprio = rec.window(To)
+                t0 = time.perf_counter()
+                actions = bundle.act(images, proprio, emb, rng=rng)[bundle.execute]
+                lag = time.perf_counter() - t0
+                out.inference_ms.append(lag * 1e3)
+                lag = lag if latency_s is None else latency_s
+                lag_cycles = min(per_tick - 1, math.ceil(lag / rig.control_period))
+                _run(loop, rig, lag_cycles, rec)
+                times = (t_obs + dt_ns * (1 + np.arange(len(actions)))).astype(np.int64)
+                ok = loop.submit(ActionChunk(actions=actions.astype(np.float64), times_ns=times, obs_time_ns=t_obs))
+                out.chunks += 1
+                out.rejected_chunks += not ok
+            _run(loop, rig, per_tick - lag_cycles, rec)
+            for e in loop.drain_events():
+                events[e.kind] += 1
+            tick += 1
+        out.sim_seconds = round(float(rig.world.time), 3)
+    finally:
+        rec.close()
+        rig.close()
+    out.events = dict(events)
+    return out
+
+
+@functools.lru_cache(maxsize=4)
+def _guard(variant: str):
+    """The safety filter's collision model, built once per process (compiling it takes ~1 s; it keeps no
+    state between checks beyond scratch data, so sequential episodes can share it)."""
+    from safety.collision import CollisionGuard
+
+    return CollisionGuard(default_limits(variant))
+
+
+def _run(loop, rig, cycles: int, recorder=None) -> None:
+    for _ in range(cycles):
+        loop.cycle()
+        rig.step(1)
+        if recorder is not None:
+            recorder(rig.world)
+
+
+def _target_of(inst) -> dict:
+    name = inst.params.get("target") or inst.params.get("top")
+    if not name:
+        return {}
+    o = inst.obj(name)
+    return {"color": o.color, "shape": o.shape}
