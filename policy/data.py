@@ -55,6 +55,16 @@ def episode_success(meta: dict) -> bool:
     return bool(meta.get("success"))
 
 
+def data_holdout(metas: list[dict]) -> dict[str, list[str]]:
+    """Colours/shapes the data generator kept out (`sudd datagen --holdout-color`): an evaluation on them is
+    a test of generalization, and `sudd eval` keeps them out of its in-distribution suite."""
+    out: dict[str, set] = {"colors": set(), "shapes": set()}
+    for m in metas:
+        for key in out:
+            out[key].update((m.get("holdout") or {}).get(key, ()))
+    return {k: sorted(v) for k, v in out.items()}
+
+
 def crop(frames: np.ndarray, size: tuple[int, int], top: int | None = None, left: int | None = None) -> np.ndarray:
     """(..., H, W, C) -> (..., h, w, C); centre crop unless the corner is given."""
     H, W = frames.shape[-3:-1]
@@ -187,4 +197,4 @@ class PolicyDataset(torch.utils.data.Dataset):
                 "episodes_total": len(self.store), "episodes_used": len(self.episodes),
                 "include_failures": self.include_failures, "steps_used": int(sum(self.lengths)), "samples": len(self),
                 "tasks": sorted({m["task"] for m in metas}), "instructions": sorted(set(self.instructions)),
-                "texts": sorted(self.text_row)}
+                "texts": sorted(self.text_row), "holdout": data_holdout(metas)}

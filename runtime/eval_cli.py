@@ -15,8 +15,8 @@ from pathlib import Path
 EPILOG = """\
 suites (each on seeds OFFSET..OFFSET+N-1; keep OFFSET away from the training seeds):
   seen        the training distribution: objects and phrasings as in the data
-  heldout     the target object has a colour/shape the data never had (--holdout-color/--holdout-shape,
-              the same ones given to `sudd datagen`)
+  heldout     the target object has a colour/shape the data never had (recorded in the bundle from
+              `sudd datagen --holdout-color/--holdout-shape`, or given here)
   paraphrase  the command in a phrasing the data never used (the task family's `paraphrases`)
 
 the data collector (planner + primitives + verify-and-retry with privileged state, `sudd datagen`'s policy)
@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--suite", action="append", default=[], choices=["seen", "heldout", "paraphrase"],
                     help="what to test (repeatable; default: seen)")
     ev.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
-                    help="colour kept out of the training data (for the heldout suite and to keep it out of `seen`)")
+                    help="colour kept out of the training data (default: what the bundle's data recorded); the "
+                         "heldout suite targets it, the seen suite never shows it")
     ev.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE", help="likewise for shapes")
     ev.add_argument("--no-collector", action="store_true", help="skip the data-collection comparison")
     ev.add_argument("--time-limit-factor", type=float, default=1.0,
@@ -68,9 +69,12 @@ def _eval(args) -> int:
     if not tasks:
         raise ValueError(f"{args.policy} records no tasks; name them with --task")
     suites = args.suite or ["seen"]
-    held = {"colors": tuple(args.holdout_color), "shapes": tuple(args.holdout_shape)}
+    recorded = bundle.manifest.get("data", {}).get("holdout") or {}
+    held = {"colors": tuple(args.holdout_color or recorded.get("colors", ())),
+            "shapes": tuple(args.holdout_shape or recorded.get("shapes", ()))}
     if "heldout" in suites and not (held["colors"] or held["shapes"]):
-        raise ValueError("--suite heldout needs --holdout-color or --holdout-shape (what the data never had)")
+        raise ValueError(f"--suite heldout: {args.policy}'s data recorded no held-out colour or shape; give "
+                         "--holdout-color/--holdout-shape (what `sudd datagen` kept out)")
     jobs = []
     for suite in suites:
         for task in tasks:

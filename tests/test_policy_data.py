@@ -122,3 +122,11 @@ def test_no_successful_episode_is_an_error(tmp_path, cfg):
         pytest.skip("the one synthetic episode happens to be a success")
     with pytest.raises(ValueError, match="verified success"):
         PolicyDataset(tmp_path, cfg, embedder=hash_embedder)
+
+
+def test_data_holdout_is_the_union_of_what_the_episodes_kept_out():
+    from policy.data import data_holdout
+
+    metas = [{"holdout": {"colors": ["purple"], "shapes": []}}, {"holdout": {"colors": ["pink", "purple"]}}, {}]
+    assert data_holdout(metas) == {"colors": ["pink", "purple"], "shapes": []}
+    assert data_holdout([]) == {"colors": [], "shapes": []}
