@@ -47,6 +47,7 @@ class EpisodeOutcome:
     success: bool
     sim_seconds: float
     end: str  # success | timeout | protective_stop
+    stop_reason: str = ""  # what the sim robot's protective stop saw (contact pair or force)
     chunks: int = 0
     rejected_chunks: int = 0
     inference_ms: list[float] = field(default_factory=list)
@@ -102,7 +103,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 out.success, out.end = True, "success"
                 break
             if rig.protective_stopped:
-                out.end = "protective_stop"
+                out.end, out.stop_reason = "protective_stop", str(rig.stop_reason or "")
                 break
             t_obs = rig.now_ns()
             lag_cycles = 0
