@@ -70,6 +70,7 @@ class RobotNodeConfig:
     # fault injection (sim, tests): seconds after ready; 0 = off
     fault_protective_stop_s: float = 0.0
     fault_camera_stop_s: float = 0.0
+    fault_camera_resume_s: float = 0.0  # > fault_camera_stop_s: the cameras come back then (fault clears)
 
 
 CONFIG = RobotNodeConfig
@@ -273,6 +274,10 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 injected_cam = True
                 cams_on.clear()
                 report["camera_stopped_at"] = now - t0
+            if injected_cam and not cams_on.is_set() and cfg.fault_camera_resume_s > cfg.fault_camera_stop_s \
+                    and now - t0 >= cfg.fault_camera_resume_s:
+                cams_on.set()
+                report["camera_resumed_at"] = now - t0
             next_t += period
             if next_t < now:
                 next_t = now + period
