@@ -77,9 +77,9 @@ def resolve_bundle(arg: str | None) -> Path:
             if not (p / "manifest.json").is_file():
                 raise ValueError(f"{p} is not a policy bundle (no manifest.json)")
             return p
-    raise ValueError("no policy bundle: pass --policy BUNDLE (or set $SUDD_POLICY). No trained bundle ships yet; "
-                     "make one with `sudd datagen ...`, `sudd train DATA --out RUN` and "
-                     "`sudd export RUN --out BUNDLE`")
+    raise ValueError(f"no policy bundle: pass --policy BUNDLE (or set ${BUNDLE_ENV}); the shipped one is "
+                     f"{DEFAULT_BUNDLE} (restore its text encoder with `make setup`). Make your own with "
+                     "`sudd datagen ...`, `sudd train DATA --out RUN` and `sudd export RUN --out BUNDLE`")
 
 
 def _run(args) -> int:
