@@ -148,8 +148,9 @@ def test_dead_camera_stops_chunks_the_arm_holds_and_it_recovers(bundle):
         la.monitor(duration_s=0.0)
     rob = _clean_exit(la)
     assert n_at_stale >= 3 and n_dead <= n_at_stale + 1  # at most one in flight while the camera was dead
-    stale = [e for e in w.events if e.kind == "policy_stale_input"][-1]
-    assert "no frame newer than" in stale.message
+    # (a loaded machine may also report a brief robot-state gap; the camera's must be among the reasons)
+    stale = [e.message for e in w.events if e.kind == "policy_stale_input"]
+    assert any("no frame newer than" in msg for msg in stale), stale
     assert late_states and max(float(np.max(np.abs(s.qd))) for s in late_states) < 0.01  # holding
     assert rob["camera_stopped_at"] >= 6.0 and rob["camera_resumed_at"] >= 10.0
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-ALLOWED = {"numpy", "mujoco", "sim.robot", "sim.kinematics", "sim.config", "sim.scene", "safety"}
+ALLOWED = {"numpy", "mujoco", "sim.robot", "sim.kinematics", "sim.rotations", "sim.config", "sim.scene", "safety"}
 
 
 def test_import_safety_is_light():
