@@ -115,6 +115,9 @@ def tcp_frame(x_close, approach_hint, tilt: float) -> np.ndarray | None:
     return np.column_stack([x, np.cross(z, x), z])
 
 
+TURN_COST = 0.2  # per radian of wrist turn to the grasp: 90 degrees weigh as much as 1.6 cm of lateral offset
+
+
 def _best_flip(R: np.ndarray, R_now: np.ndarray) -> np.ndarray:
     """The 2F-85 is symmetric about its approach axis: take the half-turn variant nearer the current wrist."""
     flipped = R @ np.diag([-1.0, -1.0, 1.0])
@@ -232,7 +235,12 @@ class GraspSampler:
             v -= np.dot(v, x) * x
             lateral, vertical = np.linalg.norm(v[:2]), abs(v[2])
             upright = np.arccos(np.clip(-R[2, 2], -1, 1))
-            cands.append((upright + 20.0 * lateral + 4.0 * vertical + rng.uniform(0.0, 0.1), T, width))
+            # Among equally good grasps (a block's two face pairs, a cylinder's any direction) prefer the least
+            # wrist turn: the data then holds one grasp yaw per situation, not a uniform spread a distilled
+            # policy must learn as a multimodal target (and the arm moves less).
+            turn = np.arccos(np.clip((np.trace(R_now.T @ R) - 1.0) / 2.0, -1.0, 1.0))
+            cands.append((upright + 20.0 * lateral + 4.0 * vertical + TURN_COST * turn + rng.uniform(0.0, 0.1),
+                          T, width))
         return self._validate(cands, q_now, body, k)
 
     def handle_grasps(self, geom: str, q_now, rng, k: int = 3, n: int = 40,
