@@ -20,6 +20,11 @@ SUITES = {
 }
 
 
+def _suite_rank(suite: str) -> int:
+    """Suites in SUITES order, unknown ones last."""
+    return list(SUITES).index(suite) if suite in SUITES else len(SUITES)
+
+
 def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
     """95% Wilson score interval of a binomial proportion; (0, 1) when n = 0."""
     if n == 0:
@@ -37,8 +42,7 @@ def summarise(records: list[dict]) -> list[dict]:
     for r in records:
         groups[(r["suite"], r["task"], r["who"])].append(r)
     rows = []
-    for (suite, task, who), rs in sorted(groups.items(), key=lambda kv: (list(SUITES).index(kv[0][0])
-                                                                       if kv[0][0] in SUITES else 99, kv[0][1:])):
+    for (suite, task, who), rs in sorted(groups.items(), key=lambda kv: (_suite_rank(kv[0][0]), kv[0][1:])):
         k = sum(bool(r["success"]) for r in rs)
         lo, hi = wilson(k, len(rs))
         times = sorted(r["sim_seconds"] for r in rs if r["success"] and r.get("sim_seconds") is not None)
@@ -52,8 +56,7 @@ def summarise(records: list[dict]) -> list[dict]:
 def markdown_table(rows: list[dict]) -> str:
     """One line per (suite, task): the policy's and the collector's success side by side."""
     by = {(r["suite"], r["task"], r["who"]): r for r in rows}
-    keys = sorted({(r["suite"], r["task"]) for r in rows},
-                  key=lambda k: (list(SUITES).index(k[0]) if k[0] in SUITES else 99, k[1]))
+    keys = sorted({(r["suite"], r["task"]) for r in rows}, key=lambda k: (_suite_rank(k[0]), k[1]))
     lines = ["| suite | task | policy success [95% CI] | data collector [95% CI] | policy median time to success |",
              "|---|---|---|---|---|"]
     for suite, task in keys:
@@ -74,8 +77,7 @@ def plot(rows: list[dict], out_png: str | Path, title: str = "closed-loop succes
     """Grouped bars (policy, collector) per (suite, task) with CI whiskers; Pillow only."""
     from PIL import Image, ImageDraw
 
-    groups = sorted({(r["suite"], r["task"]) for r in rows},
-                    key=lambda k: (list(SUITES).index(k[0]) if k[0] in SUITES else 99, k[1]))
+    groups = sorted({(r["suite"], r["task"]) for r in rows}, key=lambda k: (_suite_rank(k[0]), k[1]))
     by = {(r["suite"], r["task"], r["who"]): r for r in rows}
     colors = {"policy": (52, 101, 164), "collector": (170, 170, 170)}
     gw, bw, left, top, h = 150, 50, 60, 40, 260

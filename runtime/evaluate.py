@@ -17,8 +17,8 @@ scheduling, blending, interpolation to the 500 Hz servo rate) and every servo co
   cameras at their own size and the policy node resizes them; the evaluation removes that variable.)
 
 Success is the task's own predicate (the same one that labels the data), checked at every policy tick; the
-episode ends at success, at the data collector's time budget (task.max_seconds x `time_limit_factor`, 2 as in
-`sudd datagen`), or at a protective stop the controller could not avoid.
+episode ends at success, at the time budget (task.max_seconds x `time_limit_factor`: 1 by default, as
+`sudd eval`; the collector keeps `sudd datagen`'s 2), or at a protective stop the controller could not avoid.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ class EpisodeOutcome:
 
 def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdout: Holdout = Holdout(),
                        command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
-                       time_limit_factor: float = 2.0, latency_s: float | None = None,
+                       time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between

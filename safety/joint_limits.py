@@ -140,25 +140,11 @@ class JointLimiter:
         if not self._up_ok(i, q, v, hi):
             if not self._up_ok(i, q, v, lo):
                 return None
-            good, bad = lo, hi
-            for _ in range(_BISECT):
-                mid = 0.5 * (good + bad)
-                if self._up_ok(i, q, v, mid):
-                    good = mid
-                else:
-                    bad = mid
-            hi = good
+            hi = _last_ok(lambda x: self._up_ok(i, q, v, x), lo, hi)
         if not self._down_ok(i, q, v, lo):
             if not self._down_ok(i, q, v, hi):
                 return None
-            good, bad = hi, lo
-            for _ in range(_BISECT):
-                mid = 0.5 * (good + bad)
-                if self._down_ok(i, q, v, mid):
-                    good = mid
-                else:
-                    bad = mid
-            lo = good
+            lo = _last_ok(lambda x: self._down_ok(i, q, v, x), hi, lo)
         return (lo, hi) if lo <= hi else None
 
     # ---- policies -------------------------------------------------------------------------------------
@@ -311,3 +297,14 @@ class JointLimiter:
 
 
 __all__ = ["JointLimiter", "PASS", "SCALED", "STOP", "SHRINK"]
+
+
+def _last_ok(ok, good: float, bad: float) -> float:
+    """Bisect between a value where ok() holds and one where it fails: the last ok value found (_BISECT halvings)."""
+    for _ in range(_BISECT):
+        mid = 0.5 * (good + bad)
+        if ok(mid):
+            good = mid
+        else:
+            bad = mid
+    return good
