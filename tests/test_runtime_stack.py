@@ -81,11 +81,16 @@ def test_end_to_end_refusal_and_malformed_chunks(bundle):
         la.say(info["robot"]["instruction"], "t1")
         assert w.wait(lambda: len(w.chunks) >= 10, 20), (len(w.chunks), w.kinds())
         raw = la.bus.publisher(B.POLICY_CHUNK)
-        for payload in (b"garbage", _nan_chunk_bytes(), b"SUDD" + bytes(40)):
-            raw.put_raw(payload)
-        far = time.monotonic_ns()  # well-formed but unreachable: the controller must refuse it (event)
-        raw.publish(m.ActionChunk(actions=np.tile([3.0, 3.0, 3.0, 1, 0, 0, 0, -1, 0, 0], (2, 1)),
-                                  times_ns=np.array([far + 10**8, far + 2 * 10**8]), obs_time_ns=far))
+        # control topics drop under congestion by design (a late chunk is worthless), so on a loaded machine
+        # one put may be lost: each bad payload goes out a few times, spaced, and each kind must arrive once
+        for _ in range(3):
+            for payload in (b"garbage", _nan_chunk_bytes(), b"SUDD" + bytes(40)):
+                raw.put_raw(payload)
+                time.sleep(0.02)
+            far = time.monotonic_ns()  # well-formed but unreachable: the controller must refuse it (event)
+            raw.publish(m.ActionChunk(actions=np.tile([3.0, 3.0, 3.0, 1, 0, 0, 0, -1, 0, 0], (2, 1)),
+                                      times_ns=np.array([far + 10**8, far + 2 * 10**8]), obs_time_ns=far))
+            time.sleep(0.05)
         la.say("make me a coffee", "t2")
         assert w.wait(lambda: "command_refused" in w.kinds(), 10), w.kinds()
         time.sleep(0.5)
@@ -100,7 +105,7 @@ def test_end_to_end_refusal_and_malformed_chunks(bundle):
     assert pol["chunks"] >= 10 and pol["accepted"] == 1 and pol["refused"] == 1
     assert rob["chunks_accepted"] >= 8 and rob["servo_sent"] > 500 and rob["moved_rad"] > 1e-4, rob
     # malformed payloads were dropped at the bus edge: counted, never submitted
-    assert sum(rob["chunk_decode_errors"].values()) >= 3, rob["chunk_decode_errors"]
+    assert set(rob["chunk_decode_errors"]) == {"truncated", "non_finite", "bad_version"}, rob["chunk_decode_errors"]
     assert rob["events"].get("chunk_malformed", 0) == 0
     assert rob["chunks_rejected"] >= 1  # the unreachable one
     refusal = next(e for e in w.events if e.kind == "command_refused")
