@@ -8,10 +8,11 @@ cosine decay after a linear warm-up; EMA of the weights.
 
 - `small` trains on a 2-core CPU in minutes and runs a chunk (obs encoding + 8 DDIM steps) in ~15-25 ms
   with onnxruntime: 96x96 random crops of the 128x128 images, one residual block per stage at widths
-  16-32-64-128 (both cameras: 0.67 M parameters), UNet down_dims (64, 128, 256) with temporal kernel 3
-  and a 64-D step embedding (4.3 M); 4.9 M in all. On a CPU the denoiser is bound by per-op overhead, so
-  its kernel and widths were chosen for parameter count, not speed. The encoder's widths are what cost
-  time: 32-64-128-256 (2.5 M) measured ~3x the encoder latency; set it in a TOML file when data warrants.
+  16-32-64-128 (both cameras: 0.67 M parameters, plus 0.37 M for the instruction's FiLM), UNet down_dims
+  (64, 128, 256) with temporal kernel 3 and a 64-D step embedding (4.3 M); 5.3 M in all. On a CPU the
+  denoiser is bound by per-op overhead, so its kernel and widths were chosen for parameter count, not
+  speed. The encoder's widths are what cost time: 32-64-128-256 (2.5 M) measured ~3x the encoder latency;
+  set it in a TOML file when data warrants.
 - `full` is the paper's size for a GPU: ResNet-18 widths and depth (64-128-256-512, two blocks per stage),
   down_dims (256, 512, 1024), 112x112 crops.
 """
@@ -49,6 +50,10 @@ class PolicyConfig:
     encoder_blocks: tuple[int, ...] = field(default=(1, 1, 1, 1), metadata=spec(1, 8))
     keypoints: int = field(default=32, metadata=spec(1, 512, doc="spatial-softmax keypoints per camera"))
     image_feature_dim: int = field(default=64, metadata=spec(1, 2048))
+    # Early fusion (as RT-1's FiLM-EfficientNet): the instruction scales and shifts every residual block's
+    # channels, so the spatial-softmax keypoints can follow *the named* object. Without it the keypoints are
+    # instruction-blind and 300 demos did not teach the denoiser to pick the target among distractors.
+    text_film: bool = True
     proprio_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     text_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     # denoiser

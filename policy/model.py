@@ -13,10 +13,12 @@ features are concatenated (the model sees motion), the instruction once (it does
 
 After Diffusion Policy (Chi et al. 2023): one ResNet per camera (the views differ too much to share
 filters cheaply), GroupNorm instead of BatchNorm (batch statistics break under EMA weight averaging and
-small per-GPU batches), a spatial-softmax head (expected 2-D keypoint positions: a low-dimensional,
-position-aware summary, better for manipulation than global average pooling), and the CNN-based 1-D
-temporal UNet whose residual blocks are FiLM-modulated (per-channel scale and bias) by [step embedding,
-global cond]. The language embedding comes frozen from `policy.text` (MiniLM, 384-D) and is only projected.
+small per-GPU batches), FiLM from the instruction in every residual block (`text_film`, after RT-1), a
+spatial-softmax head (expected 2-D keypoint positions: a low-dimensional, position-aware summary, better
+for manipulation than global average pooling), and the CNN-based 1-D temporal UNet whose residual blocks
+are FiLM-modulated (per-channel scale and bias) by [step embedding, global cond]. The language embedding
+comes frozen from `policy.text` (MiniLM, 384-D): it FiLMs the image encoders and, projected, joins the
+global conditioning.
 """
 
 from __future__ import annotations
@@ -68,9 +70,15 @@ class SpatialSoftmax(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """ResNet (stem 7x7/2 + maxpool, stages at strides 1, 2, 2, 2) -> spatial softmax -> linear."""
+    """ResNet (stem 7x7/2 + maxpool, stages at strides 1, 2, 2, 2) -> spatial softmax -> linear.
 
-    def __init__(self, widths: tuple[int, ...], blocks: tuple[int, ...], keypoints: int, out_dim: int):
+    With `film_dim` (the text embedding's width), every residual block's output is modulated per channel,
+    x * (1 + scale) + shift, by a linear map of the instruction. The map starts at zero, so an untrained
+    encoder is the plain ResNet.
+    """
+
+    def __init__(self, widths: tuple[int, ...], blocks: tuple[int, ...], keypoints: int, out_dim: int,
+                 film_dim: int = 0):
         super().__init__()
         self.stem = nn.Sequential(nn.Conv2d(3, widths[0], 7, 2, 3, bias=False), _gn(widths[0]), nn.ReLU(),
                                   nn.MaxPool2d(3, 2, 1))
@@ -82,9 +90,22 @@ class ImageEncoder(nn.Module):
         self.stages = nn.Sequential(*layers)
         self.pool = SpatialSoftmax(cin, keypoints)
         self.out = nn.Linear(2 * keypoints, out_dim)
+        self.film_sizes = [2 * b.conv2.out_channels for b in layers]
+        self.film = None
+        if film_dim:
+            self.film = nn.Linear(film_dim, sum(self.film_sizes))
+            nn.init.zeros_(self.film.weight)
+            nn.init.zeros_(self.film.bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.out(self.pool(self.stages(self.stem(x * 2.0 - 1.0))))
+    def forward(self, x: torch.Tensor, text: torch.Tensor | None = None) -> torch.Tensor:
+        """x (N, 3, h, w) in [0, 1]; text (N, film_dim), required when built with film_dim."""
+        x = self.stem(x * 2.0 - 1.0)
+        if self.film is None:
+            return self.out(self.pool(self.stages(x)))
+        for block, film in zip(self.stages, self.film(text).split(self.film_sizes, dim=1)):
+            scale, shift = film[:, :film.shape[1] // 2, None, None], film[:, film.shape[1] // 2:, None, None]
+            x = block(x) * (1.0 + scale) + shift
+        return self.out(self.pool(x))
 
 
 class ObsEncoder(nn.Module):
@@ -94,7 +115,8 @@ class ObsEncoder(nn.Module):
         super().__init__()
         self.cameras = tuple(cfg.cameras)
         self.images = nn.ModuleDict({c: ImageEncoder(cfg.encoder_widths, cfg.encoder_blocks, cfg.keypoints,
-                                                     cfg.image_feature_dim) for c in self.cameras})
+                                                     cfg.image_feature_dim, TEXT_DIM if cfg.text_film else 0)
+                                     for c in self.cameras})
         self.proprio = nn.Sequential(nn.Linear(cfg.proprio_dim, cfg.proprio_feature_dim), nn.Mish(),
                                      nn.Linear(cfg.proprio_feature_dim, cfg.proprio_feature_dim))
         self.text = nn.Sequential(nn.Linear(TEXT_DIM, cfg.text_feature_dim), nn.Mish(),
@@ -102,7 +124,8 @@ class ObsEncoder(nn.Module):
 
     def forward(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
         b, to = proprio.shape[:2]
-        feats = [self.images[c](images[c].flatten(0, 1)).view(b, to, -1) for c in self.cameras]
+        per_frame = text.repeat_interleave(to, dim=0)  # (B*To, 384), in the order of images.flatten(0, 1)
+        feats = [self.images[c](images[c].flatten(0, 1), per_frame).view(b, to, -1) for c in self.cameras]
         feats.append(self.proprio(proprio))
         return torch.cat([torch.cat(feats, dim=-1).flatten(1), self.text(text)], dim=-1)
 

@@ -64,11 +64,11 @@ class EpisodeOutcome:
 def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdout: Holdout = Holdout(),
                        command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
-                       controller: ControllerConfig | None = None) -> EpisodeOutcome:
+                       controller: ControllerConfig | None = None, observer=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
-    of measuring it."""
+    of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos)."""
     from datagen.recorder import Recorder
     from sim.twins.rig import SimRig
 
@@ -99,6 +99,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         rig.step(1)
         tick = 0
         while rig.world.time < budget:
+            if observer is not None:
+                observer(rig.world, inst)
             if ep.success():
                 out.success, out.end = True, "success"
                 break
