@@ -61,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _eval(args) -> int:
     from policy.bundle import Bundle
-    from runtime.eval_report import markdown_table, plot, summarise
+    from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from sim.tasks import get_task
 
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
@@ -108,6 +108,10 @@ def _eval(args) -> int:
     records = [r for r in _read(results_path) if key(r) in wanted]
     rows = summarise(records)
     table = markdown_table(rows)
+    why = failure_table(rows)
+    if why:
+        table += ("\n\nWhy the policy failed (no_grasp: held nothing; wrong_object: held only other objects; "
+                  "target_not_placed: held the named object, no success):\n\n" + why)
     summary = {"settings": settings, "suites": suites, "tasks": tasks, "episodes": args.episodes,
                "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
                "bundle": bundle.info()}

@@ -9,7 +9,7 @@ which small evaluations hit often.
 from __future__ import annotations
 
 import math
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 
 Z95 = 1.959963984540054
@@ -37,7 +37,8 @@ def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
 
 
 def summarise(records: list[dict]) -> list[dict]:
-    """Per (suite, task, who): n, successes, rate, 95% CI; plus median time to success and inference p50."""
+    """Per (suite, task, who): n, successes, rate, 95% CI; median time to success, inference p50, and the
+    failed episodes counted by failure class and by how they ended."""
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in records:
         groups[(r["suite"], r["task"], r["who"])].append(r)
@@ -47,9 +48,12 @@ def summarise(records: list[dict]) -> list[dict]:
         lo, hi = wilson(k, len(rs))
         times = sorted(r["sim_seconds"] for r in rs if r["success"] and r.get("sim_seconds") is not None)
         infer = sorted(r["inference_ms"]["p50"] for r in rs if isinstance(r.get("inference_ms"), dict))
+        failures = Counter(r["failure"] for r in rs if r.get("failure"))
+        ends = Counter(r["end"] for r in rs if not r["success"] and r.get("end"))
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
-                     "inference_p50_ms": infer[len(infer) // 2] if infer else None})
+                     "inference_p50_ms": infer[len(infer) // 2] if infer else None,
+                     "failures": dict(failures), "ends": dict(ends)})
     return rows
 
 
@@ -63,6 +67,22 @@ def markdown_table(rows: list[dict]) -> str:
         pol, col = by.get((suite, task, "policy")), by.get((suite, task, "collector"))
         t = pol["median_success_s"] if pol else None
         lines.append(f"| {suite} | {task} | {_cell(pol)} | {_cell(col)} | {'-' if t is None else f'{t:.1f} s'} |")
+    return "\n".join(lines)
+
+
+def failure_table(rows: list[dict]) -> str:
+    """Why the policy's failed episodes failed (runtime.eval_progress) and how they ended; "" if none failed."""
+    from runtime.eval_progress import FAILURES
+
+    pol = [r for r in rows if r["who"] == "policy" and r["successes"] < r["n"]]
+    if not pol:
+        return ""
+    ends = sorted({e for r in pol for e in r.get("ends", {})})
+    lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends)) + " |",
+             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends))]
+    for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
+        cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
+        lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -19,6 +19,8 @@ scheduling, blending, interpolation to the 500 Hz servo rate) and every servo co
 Success is the task's own predicate (the same one that labels the data), checked at every policy tick; the
 episode ends at success, at the time budget (task.max_seconds x `time_limit_factor`: 1 by default, as
 `sudd eval`; the collector keeps `sudd datagen`'s 2), or at a protective stop the controller could not avoid.
+Every episode also says what the gripper held on the way and, when it failed, why (`failure`, see
+`runtime.eval_progress`).
 """
 
 from __future__ import annotations
@@ -53,6 +55,8 @@ class EpisodeOutcome:
     inference_ms: list[float] = field(default_factory=list)
     events: dict[str, int] = field(default_factory=dict)
     target: dict = field(default_factory=dict)  # the target object's colour and shape
+    held: list[str] = field(default_factory=list)  # objects the gripper held at some tick, first first
+    failure: str = ""  # why it failed, one of runtime.eval_progress.FAILURES ("" on success)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -70,6 +74,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
     of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos)."""
     from datagen.recorder import Recorder
+    from runtime.eval_progress import GraspProgress
     from sim.twins.rig import SimRig
 
     ep = build_episode(task, seed, dr, "fast", holdout=holdout)
@@ -93,12 +98,14 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     target = _target_of(inst)
     out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target)
     events: Counter = Counter()
+    progress = GraspProgress()
     try:
         rec.start()
         loop.cycle()  # the controller's first cycle: it now knows the arm's state
         rig.step(1)
         tick = 0
         while rig.world.time < budget:
+            progress(rig.world, inst)
             if observer is not None:
                 observer(rig.world, inst)
             if ep.success():
@@ -131,6 +138,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         rec.close()
         rig.close()
     out.events = dict(events)
+    out.held = [inst.obj(n).phrase for n in progress.held]
+    out.failure = progress.failure(out.success)
     return out
 
 

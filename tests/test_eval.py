@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from runtime.eval_report import markdown_table, plot, summarise, wilson
+from runtime.eval_report import failure_table, markdown_table, plot, summarise, wilson
 from runtime.evaluate import run_policy_episode
 from sim.dr_config import load_dr
 from sim.tasks import TASKS, get_task
@@ -55,12 +55,28 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert out.sim_seconds < len(collected.action) / 10.0 + 2.0
     assert policy.seen[0] == ((2, 128, 128, 3), (2, 128, 128, 3), (2, 16))
     assert out.target["color"] and out.target["shape"]
+    assert out.held == [f"{out.target['color']} {out.target['shape']}"] and out.failure == ""
 
 
 def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
     out = run_policy_episode(Replay(collected.action[:1]), "pick_place", SEED, dr="heavy", time_limit_factor=0.05)
     assert not out.success and out.end == "timeout"
     assert 1.4 < out.sim_seconds < 1.7  # 30 s x 0.05
+    assert out.held == [] and out.failure == "no_grasp"
+
+
+def test_failure_classes():
+    from runtime.eval_progress import GraspProgress
+
+    p = GraspProgress()
+    p.target = "obj0"
+    assert p.failure(True) == "" and p.failure(False) == "no_grasp"
+    p.held = ["obj2"]
+    assert p.failure(False) == "wrong_object"
+    p.held = ["obj2", "obj0"]
+    assert p.failure(False) == "target_not_placed"
+    p.target = None  # a task that names no object (open the drawer): holding something is not "wrong"
+    assert p.failure(False) == "target_not_placed"
 
 
 def test_paraphrases_are_phrasings_the_data_never_used():
@@ -92,13 +108,21 @@ def test_summary_table_and_chart(tmp_path):
              "inference_ms": {"p50": 20.0}} for s in (True, True, True, False)]
     recs += [{"suite": "seen", "task": "pick_place", "who": "collector", "success": s, "sim_seconds": 8.0}
              for s in (True, False, False, False)]
-    recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0}]
+    recs[3].update(failure="wrong_object", end="protective_stop")
+    recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
+              "failure": "no_grasp", "end": "timeout"}]
     rows = summarise(recs)
     assert [(r["suite"], r["who"], r["successes"], r["n"]) for r in rows] == [
         ("seen", "collector", 1, 4), ("seen", "policy", 3, 4), ("paraphrase", "policy", 0, 1)]
     table = markdown_table(rows)
     assert "| seen | pick_place | 3/4 = 75% [30, 95] | 1/4 = 25% [5, 70] | 9.0 s |" in table
     assert "| paraphrase | pick_place | 0/1 = 0% [0, 79] | - | - |" in table
+    why = failure_table(rows).splitlines()
+    assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
+                      "| ended: timeout |")
+    assert why[2:] == ["| seen | pick_place | 1 | 0 | 1 | 0 | 1 | 0 |",
+                       "| paraphrase | pick_place | 1 | 1 | 0 | 0 | 0 | 1 |"]
+    assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
 
@@ -119,7 +143,9 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
     assert para["command"] != para["instruction"]
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert {r["who"] for r in summary["rows"]} == {"policy", "collector"}
-    assert (tmp_path / "results.md").read_text().count("| pick_place |") == 2
+    md = (tmp_path / "results.md").read_text()
+    assert "| seen | pick_place | 0/1" in md and "| paraphrase | pick_place | 0/1" in md
+    assert "Why the policy failed" in md
     assert (tmp_path / "success.png").stat().st_size > 1000
     assert main(args) == 0  # resumed: nothing left to run, nothing appended
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
