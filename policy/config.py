@@ -48,6 +48,9 @@ class PolicyConfig:
     # image encoder
     encoder_widths: tuple[int, ...] = field(default=(16, 32, 64, 128), metadata=spec(4, 1024))
     encoder_blocks: tuple[int, ...] = field(default=(1, 1, 1, 1), metadata=spec(1, 8))
+    # Stride of each stage's first block; empty = the ResNet's 1, 2, 2, ... That leaves a 3x3 map of a
+    # 96x96 crop for the spatial softmax: nine cells to say where a 4 cm object is; 1-2-2-1 keeps 6x6.
+    encoder_strides: tuple[int, ...] = field(default=(), metadata=spec(1, 4))
     keypoints: int = field(default=32, metadata=spec(1, 512, doc="spatial-softmax keypoints per camera"))
     image_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     # Early fusion (as RT-1's FiLM-EfficientNet): the instruction scales and shifts every residual block's
@@ -97,6 +100,8 @@ class PolicyConfig:
                               f"(the UNet halves it {len(self.down_dims) - 1} times)")
         if len(self.encoder_blocks) != len(self.encoder_widths):
             raise ConfigError("encoder_blocks needs one entry per encoder_widths stage")
+        if self.encoder_strides and len(self.encoder_strides) != len(self.encoder_widths):
+            raise ConfigError("encoder_strides needs one entry per encoder_widths stage")
         if any(c > s for c, s in zip(self.crop_size, self.image_size)):
             raise ConfigError(f"crop_size {self.crop_size} exceeds image_size {self.image_size}")
         if len(set(self.cameras)) != len(self.cameras) or not self.cameras:

@@ -54,15 +54,21 @@ class BasicBlock(nn.Module):
 
 
 class SpatialSoftmax(nn.Module):
-    """(N, C, H, W) -> (N, 2K): for each of K learned 1x1 feature maps, the softmax-weighted mean (x, y) in [-1, 1]."""
+    """(N, C, H, W) -> (N, 2K): for each of K learned 1x1 feature maps, the softmax-weighted mean (x, y) in [-1, 1].
+
+    The softmax has a learned inverse temperature (as robomimic's): with GroupNorm-scaled features the 1x1
+    logits start small, the attention nearly uniform and every keypoint near the centre whatever the image;
+    a learned sharpness lets the keypoints become peaked enough to carry an object's position.
+    """
 
     def __init__(self, cin: int, keypoints: int):
         super().__init__()
         self.proj = nn.Conv2d(cin, keypoints, 1)
+        self.log_beta = nn.Parameter(torch.zeros(()))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n, _, h, w = x.shape
-        attn = torch.softmax(self.proj(x).flatten(2), dim=-1)  # (N, K, HW)
+        attn = torch.softmax(self.proj(x).flatten(2) * self.log_beta.exp(), dim=-1)  # (N, K, HW)
         ys, xs = torch.meshgrid(torch.linspace(-1, 1, h, device=x.device), torch.linspace(-1, 1, w, device=x.device),
                                 indexing="ij")
         pos = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1).to(attn.dtype)  # (HW, 2)
@@ -70,7 +76,7 @@ class SpatialSoftmax(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """ResNet (stem 7x7/2 + maxpool, stages at strides 1, 2, 2, 2) -> spatial softmax -> linear.
+    """ResNet (stem 7x7/2 + maxpool, stages at `strides`, by default 1, 2, 2, 2) -> spatial softmax -> linear.
 
     With `film_dim` (the text embedding's width), every residual block's output is modulated per channel,
     x * (1 + scale) + shift, by a linear map of the instruction. The map starts at zero, so an untrained
@@ -78,14 +84,15 @@ class ImageEncoder(nn.Module):
     """
 
     def __init__(self, widths: tuple[int, ...], blocks: tuple[int, ...], keypoints: int, out_dim: int,
-                 film_dim: int = 0):
+                 film_dim: int = 0, strides: tuple[int, ...] | None = None):
         super().__init__()
         self.stem = nn.Sequential(nn.Conv2d(3, widths[0], 7, 2, 3, bias=False), _gn(widths[0]), nn.ReLU(),
                                   nn.MaxPool2d(3, 2, 1))
         layers, cin = [], widths[0]
         for i, (w, n) in enumerate(zip(widths, blocks)):
             for j in range(n):
-                layers.append(BasicBlock(cin, w, 2 if (i > 0 and j == 0) else 1))
+                first = strides[i] if strides else (2 if i > 0 else 1)
+                layers.append(BasicBlock(cin, w, first if j == 0 else 1))
                 cin = w
         self.stages = nn.Sequential(*layers)
         self.pool = SpatialSoftmax(cin, keypoints)
@@ -115,7 +122,8 @@ class ObsEncoder(nn.Module):
         super().__init__()
         self.cameras = tuple(cfg.cameras)
         self.images = nn.ModuleDict({c: ImageEncoder(cfg.encoder_widths, cfg.encoder_blocks, cfg.keypoints,
-                                                     cfg.image_feature_dim, TEXT_DIM if cfg.text_film else 0)
+                                                     cfg.image_feature_dim, TEXT_DIM if cfg.text_film else 0,
+                                                     cfg.encoder_strides)
                                      for c in self.cameras})
         self.proprio = nn.Sequential(nn.Linear(cfg.proprio_dim, cfg.proprio_feature_dim), nn.Mish(),
                                      nn.Linear(cfg.proprio_feature_dim, cfg.proprio_feature_dim))

@@ -65,6 +65,27 @@ def test_module_shapes():
     assert prepare_images(frames, cfg.crop_size).shape == (B, To, 3, h, w)
 
 
+def test_encoder_strides_set_the_keypoint_map_and_are_validated():
+    x = torch.rand(2, 3, 32, 32)
+    default = ImageEncoder((8, 16, 32), (1, 1, 1), 4, 12)
+    finer = ImageEncoder((8, 16, 32), (1, 1, 1), 4, 12, strides=(1, 2, 1))
+    assert default.stages(default.stem(x)).shape[-2:] == (2, 2)
+    assert finer.stages(finer.stem(x)).shape[-2:] == (4, 4) and finer(x).shape == (2, 12)
+    with pytest.raises(ConfigError, match="encoder_strides"):
+        load_policy_config({**TINY, "encoder_strides": [1, 2, 2]})
+
+
+def test_spatial_softmax_sharpness_is_learned():
+    ss = SpatialSoftmax(4, 3)
+    x = torch.randn(2, 4, 6, 6)
+    soft = ss(x)
+    with torch.no_grad():
+        ss.log_beta.fill_(3.0)
+    sharp = ss(x)
+    assert sharp.abs().mean() > soft.abs().mean()  # peaked attention: keypoints leave the centre
+    assert any(p is ss.log_beta for p in ss.parameters())
+
+
 def test_instruction_film_starts_as_identity_and_then_steers_the_keypoints():
     torch.manual_seed(0)
     plain, filmed = ImageEncoder((8, 16), (1, 1), 5, 12), ImageEncoder((8, 16), (1, 1), 5, 12, film_dim=384)
