@@ -293,3 +293,37 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
     assert targs.steps == 5 and parse_overrides(targs.set) == {"lr": 0.001, "preset": "full"}
     with pytest.raises(SystemExit):
         parser.parse_args(["train", "data", "--out", "r"])  # --steps or --epochs is required
+
+
+class _StandIn:
+    """The bundle interface policy.sensitivity uses; actions depend on what `uses` names."""
+
+    obs_horizon, cameras, pred_horizon, action_dim, execute = 2, ("scene", "wrist"), 16, 10, slice(1, 9)
+
+    def __init__(self, uses):
+        self.uses = uses
+
+    def embed(self, text):
+        return np.full(384, float(len(text)), np.float32)
+
+    def act(self, images, proprio, emb, noise=None, rng=None):
+        a = np.asarray(noise, np.float32) * 0.01
+        if "scene" in self.uses:
+            a[:, :3] += images["scene"].mean() / 255.0
+        if "proprio" in self.uses:
+            a[:, :3] += proprio[-1, :3]
+        return a
+
+
+def test_input_sensitivity_finds_the_inputs_a_policy_ignores(run, bundle):
+    from policy.sensitivity import blind_cameras, input_sensitivity
+
+    data = run.parent / "data"
+    blind = input_sensitivity(_StandIn({"proprio"}), data, samples=6)
+    assert blind["image_scene"] == blind["image_wrist"] == blind["text"] == 0.0
+    assert blind["proprio"] > 0 and blind["noise"] > 0 and blind["samples"] == 6
+    assert blind_cameras(blind) == ["scene", "wrist"]
+    seeing = input_sensitivity(_StandIn({"scene", "proprio"}), data, samples=6)
+    assert seeing["image_scene"] > 0 and blind_cameras(seeing) == ["wrist"]
+    real = input_sensitivity(bundle, data, samples=4)  # the ONNX bundle on recorded windows
+    assert set(real) >= {"image_scene", "image_wrist", "proprio", "text", "noise"} and real["noise"] > 0
