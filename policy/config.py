@@ -73,6 +73,9 @@ class PolicyConfig:
     include_failures: bool = False
     subtask_language_prob: float = field(default=0.0, metadata=spec(0.0, 1.0,
                                          doc="share of samples conditioned on the running subtask's label"))
+    aux_target_weight: float = field(default=0.0, metadata=spec(0.0, 100.0, doc=(
+        "weight of an auxiliary loss: regress, from the current image features alone, where the episode "
+        "grasps and releases (the actions' first gripper close and the next open); 0 = off")))
     color_jitter: float = field(default=0.2, metadata=spec(0.0, 1.0, doc="brightness/contrast/saturation +-"))
     # optimisation
     batch_size: int = field(default=64, metadata=spec(1, 4096, doc="per process"))

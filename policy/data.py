@@ -87,6 +87,19 @@ def color_jitter(x: torch.Tensor, rng: np.random.Generator, strength: float) -> 
     return x.clamp(0.0, 1.0)
 
 
+def grasp_and_release(action: np.ndarray, closed: float = 0.5) -> torch.Tensor:
+    """(T, Da) normalized actions -> (6,): the position where the gripper first closes and where it next
+    opens (the episode's end if it never does), in the actions' normalized units. The auxiliary target of
+    `aux_target_weight`: where the named object is and where it goes, both readable from the images."""
+    grip = action[:, -1]
+    # normalized gripper: the raw 0..1 maps to -1..1 unless it never varied
+    shut = grip > (0.0 if np.ptp(grip) > 0 else closed)
+    t_close = int(np.argmax(shut)) if shut.any() else len(grip) - 1
+    after = np.flatnonzero(~shut[t_close:])
+    t_open = t_close + int(after[0]) if len(after) else len(grip) - 1
+    return torch.from_numpy(np.concatenate([action[t_close, :3], action[t_open, :3]]).astype(np.float32))
+
+
 class PolicyDataset(torch.utils.data.Dataset):
     """Map-style dataset of policy samples; item = index or (index, seed). See the module docstring.
 
@@ -115,6 +128,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.proprio = [self.normalizer.normalize_proprio(a["proprio"]) for a in low]
         self.action = [self.normalizer.normalize_action(a["action"]) for a in low]
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
+        self.aux = [grasp_and_release(a) for a in self.action]
         self.lengths = [len(a["action"]) for a in low]
         self._language(embedder)
         To, Tp, Ta = cfg.obs_horizon, cfg.pred_horizon, cfg.action_horizon
@@ -187,7 +201,7 @@ class PolicyDataset(torch.utils.data.Dataset):
             j = int(self.subtask[k][now])
             if 0 <= j < len(self.subtask_labels[k]):
                 text = self.subtask_labels[k][j]
-        return {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]),
+        return {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]), "aux": self.aux[k],
                 "action": torch.from_numpy(self.action[k][act]), "text": self.text_table[self.text_row[text]]}
 
     def info(self) -> dict:

@@ -251,6 +251,10 @@ class DiffusionPolicy(nn.Module):
         self.obs_encoder = ObsEncoder(cfg)
         self.unet = ConditionalUnet1D(cfg.action_dim, cfg.global_cond_dim, cfg.step_embed_dim, cfg.down_dims,
                                       cfg.kernel_size, cfg.group_norm_groups)
+        self.aux_head = None
+        if cfg.aux_target_weight > 0:  # training only: not part of the exported graphs
+            width = len(cfg.cameras) * cfg.image_feature_dim
+            self.aux_head = nn.Sequential(nn.Linear(width, 128), nn.Mish(), nn.Linear(128, 6))
         ab = torch.tensor(alphas_cumprod(cfg.num_train_timesteps, cfg.beta_schedule), dtype=torch.float32)
         self.register_buffer("alphas_cumprod", ab, persistent=False)
 
@@ -264,12 +268,25 @@ class DiffusionPolicy(nn.Module):
         """MSE between the true and predicted noise of x_t = sqrt(ab_t) a0 + sqrt(1 - ab_t) eps.
 
         batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
-        (all normalized); noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
+        (all normalized), aux (B, 6) (only with aux_target_weight, see policy.data.grasp_and_release);
+        noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
         """
         cond = self.encode(batch["images"], batch["proprio"], batch["text"])
         ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
         noisy = ab.sqrt() * batch["action"] + (1 - ab).sqrt() * noise
-        return F.mse_loss(self(noisy, timesteps, cond), noise)
+        loss = F.mse_loss(self(noisy, timesteps, cond), noise)
+        if self.aux_head is not None:
+            loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_head(self.image_features(cond)),
+                                                                  batch["aux"])
+        return loss
+
+    def image_features(self, cond: torch.Tensor) -> torch.Tensor:
+        """The newest observation step's camera features, sliced out of the global cond (see the layout
+        in the module docstring): (B, G) -> (B, cameras x image_feature_dim)."""
+        cfg = self.cfg
+        width = len(cfg.cameras) * cfg.image_feature_dim
+        start = (cfg.obs_horizon - 1) * (width + cfg.proprio_feature_dim)
+        return cond[:, start:start + width]
 
 
 def prepare_images(frames: torch.Tensor, crop_size: tuple[int, int]) -> torch.Tensor:

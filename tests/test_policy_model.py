@@ -172,3 +172,33 @@ def test_orthonormalize_rot6d():
 
 def test_default_config_is_valid():
     PolicyConfig().validate()
+
+
+def test_aux_target_loss_trains_the_image_features_only_when_asked():
+    from policy.data import grasp_and_release
+
+    grip = np.array([-1, -1, 1, 1, 1, -1, -1], np.float32)  # normalized: closes at step 2, opens at step 5
+    act = np.zeros((7, 10), np.float32)
+    act[:, 0], act[:, -1] = np.arange(7), grip
+    aux = grasp_and_release(act)
+    assert aux.tolist() == [2, 0, 0, 5, 0, 0]
+    act[:, -1] = -1  # never closes: both are the last step
+    assert grasp_and_release(act)[[0, 3]].tolist() == [6, 6]
+
+    cfg = load_policy_config({**TINY, "aux_target_weight": 1.0})
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg)
+    assert DiffusionPolicy(load_policy_config(TINY)).aux_head is None
+    B, To, (h, w) = 2, cfg.obs_horizon, cfg.crop_size
+    batch = {"images": {c: torch.rand(B, To, 3, h, w) for c in cfg.cameras},
+             "proprio": torch.randn(B, To, cfg.proprio_dim), "text": torch.randn(B, 384), "action": torch.randn(B, cfg.pred_horizon, cfg.action_dim),
+             "aux": torch.randn(B, 6)}
+    noise, t = torch.randn(B, cfg.pred_horizon, cfg.action_dim), torch.randint(0, 100, (B,))
+    with_aux = model.loss(batch, noise, t)
+    model.cfg = load_policy_config(TINY)
+    plain = model.loss(batch, noise, t)
+    model.cfg = cfg
+    assert with_aux > plain
+    cond = model.encode(batch["images"], batch["proprio"], batch["text"])
+    feats = torch.cat([model.obs_encoder.images[c](batch["images"][c][:, -1], batch["text"]) for c in cfg.cameras], 1)
+    torch.testing.assert_close(model.image_features(cond), feats)  # the slice is the newest step's cameras
