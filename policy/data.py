@@ -87,16 +87,15 @@ def color_jitter(x: torch.Tensor, rng: np.random.Generator, strength: float) -> 
     return x.clamp(0.0, 1.0)
 
 
-def grasp_and_release(action: np.ndarray, closed: float = 0.5) -> torch.Tensor:
+def grasp_and_release(action: np.ndarray) -> torch.Tensor:
     """(T, Da) normalized actions -> (6,): the position where the gripper first closes and where it next
     opens (the episode's end if it never does), in the actions' normalized units. The auxiliary target of
     `aux_target_weight`: where the named object is and where it goes, both readable from the images."""
-    grip = action[:, -1]
-    # normalized gripper: the raw 0..1 maps to -1..1 unless it never varied
-    shut = grip > (0.0 if np.ptp(grip) > 0 else closed)
-    t_close = int(np.argmax(shut)) if shut.any() else len(grip) - 1
+    # normalized gripper: raw 0..1 maps to -1..1, or to 0 if it never varied (never closed)
+    shut = action[:, -1] > 0.0
+    t_close = int(np.argmax(shut)) if shut.any() else len(shut) - 1
     after = np.flatnonzero(~shut[t_close:])
-    t_open = t_close + int(after[0]) if len(after) else len(grip) - 1
+    t_open = t_close + int(after[0]) if len(after) else len(shut) - 1
     return torch.from_numpy(np.concatenate([action[t_close, :3], action[t_open, :3]]).astype(np.float32))
 
 

@@ -161,7 +161,9 @@ def _run(loop, rig, cycles: int, recorder=None) -> None:
 
 
 def _target_of(inst) -> dict:
-    name = inst.params.get("target") or inst.params.get("top")
+    from runtime.eval_progress import target_name
+
+    name = target_name(inst)
     if not name:
         return {}
     o = inst.obj(name)
