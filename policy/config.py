@@ -76,6 +76,9 @@ class PolicyConfig:
     aux_target_weight: float = field(default=0.0, metadata=spec(0.0, 100.0, doc=(
         "weight of an auxiliary loss: regress, from the current image features alone, where the episode "
         "grasps and releases (the actions' first gripper close and the next open); 0 = off")))
+    aux_target_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
+        "frame of those targets: base (absolute, normalized like the actions) or tcp (relative to the "
+        "gripper at the sample's newest step: what the wrist camera sees directly)")))
     color_jitter: float = field(default=0.2, metadata=spec(0.0, 1.0, doc="brightness/contrast/saturation +-"))
     # optimisation
     batch_size: int = field(default=64, metadata=spec(1, 4096, doc="per process"))

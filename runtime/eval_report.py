@@ -50,10 +50,12 @@ def summarise(records: list[dict]) -> list[dict]:
         infer = sorted(r["inference_ms"]["p50"] for r in rs if isinstance(r.get("inference_ms"), dict))
         failures = Counter(r["failure"] for r in rs if r.get("failure"))
         ends = Counter(r["end"] for r in rs if not r["success"] and r.get("end"))
+        near = sorted(r["closest_cm"] for r in rs if r.get("failure") == "no_grasp" and r.get("closest_cm") is not None)
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
-                     "failures": dict(failures), "ends": dict(ends)})
+                     "failures": dict(failures), "ends": dict(ends),
+                     "no_grasp_closest_cm": near[len(near) // 2] if near else None})
     return rows
 
 
@@ -78,10 +80,13 @@ def failure_table(rows: list[dict]) -> str:
     if not pol:
         return ""
     ends = sorted({e for r in pol for e in r.get("ends", {})})
-    lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends)) + " |",
-             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends))]
+    lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends))
+             + " | no_grasp: median closest approach |",
+             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 1)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
+        near = r.get("no_grasp_closest_cm")
         cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
+        cells.append("-" if near is None else f"{near:.1f} cm")
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

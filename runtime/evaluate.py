@@ -57,6 +57,7 @@ class EpisodeOutcome:
     target: dict = field(default_factory=dict)  # the target object's colour and shape
     held: list[str] = field(default_factory=list)  # objects the gripper held at some tick, first first
     failure: str = ""  # why it failed, one of runtime.eval_progress.FAILURES ("" on success)
+    closest_cm: float | None = None  # nearest the TCP came to the named object before holding it
 
     def record(self) -> dict:
         out = asdict(self)
@@ -140,6 +141,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     out.events = dict(events)
     out.held = [inst.obj(n).phrase for n in progress.held]
     out.failure = progress.failure(out.success)
+    out.closest_cm = None if progress.closest_m is None else round(100 * progress.closest_m, 1)
     return out
 
 

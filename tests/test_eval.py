@@ -10,9 +10,12 @@ import json
 import numpy as np
 import pytest
 
+from runtime.eval_progress import target_name
 from runtime.eval_report import failure_table, markdown_table, plot, summarise, wilson
 from runtime.evaluate import run_policy_episode
+from sim.build import build_episode
 from sim.dr_config import load_dr
+from sim.state import StateView
 from sim.tasks import TASKS, get_task
 
 SEED = 100_003
@@ -63,6 +66,11 @@ def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
     assert not out.success and out.end == "timeout"
     assert 1.4 < out.sim_seconds < 1.7  # 30 s x 0.05
     assert out.held == [] and out.failure == "no_grasp"
+    # it never moved, so its closest approach is where it started: the named object's distance from home
+    start = build_episode("pick_place", SEED, "heavy", "fast")
+    tcp = start.world.tcp_pose()[:3, 3]
+    obj = StateView(start.world).position(target_name(start.instance))
+    assert out.closest_cm == pytest.approx(100 * np.linalg.norm(tcp - obj), abs=1.0)
 
 
 def test_failure_classes():
@@ -108,20 +116,20 @@ def test_summary_table_and_chart(tmp_path):
              "inference_ms": {"p50": 20.0}} for s in (True, True, True, False)]
     recs += [{"suite": "seen", "task": "pick_place", "who": "collector", "success": s, "sim_seconds": 8.0}
              for s in (True, False, False, False)]
-    recs[3].update(failure="wrong_object", end="protective_stop")
+    recs[3].update(failure="wrong_object", end="protective_stop", closest_cm=1.0)  # held: not a no_grasp
     recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
-              "failure": "no_grasp", "end": "timeout"}]
+              "failure": "no_grasp", "end": "timeout", "closest_cm": c} for c in (12.5, 3.0, 7.25)]
     rows = summarise(recs)
     assert [(r["suite"], r["who"], r["successes"], r["n"]) for r in rows] == [
-        ("seen", "collector", 1, 4), ("seen", "policy", 3, 4), ("paraphrase", "policy", 0, 1)]
+        ("seen", "collector", 1, 4), ("seen", "policy", 3, 4), ("paraphrase", "policy", 0, 3)]
     table = markdown_table(rows)
     assert "| seen | pick_place | 3/4 = 75% [30, 95] | 1/4 = 25% [5, 70] | 9.0 s |" in table
-    assert "| paraphrase | pick_place | 0/1 = 0% [0, 79] | - | - |" in table
+    assert "| paraphrase | pick_place | 0/3 = 0% [0, 56] | - | - |" in table
     why = failure_table(rows).splitlines()
     assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
-                      "| ended: timeout |")
-    assert why[2:] == ["| seen | pick_place | 1 | 0 | 1 | 0 | 1 | 0 |",
-                       "| paraphrase | pick_place | 1 | 1 | 0 | 0 | 0 | 1 |"]
+                      "| ended: timeout | no_grasp: median closest approach |")
+    assert why[2:] == ["| seen | pick_place | 1 | 0 | 1 | 0 | 1 | 0 | - |",
+                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm |"]
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 import torch
+from torch.utils.data import default_collate
 
 from datagen.store import Dataset
 from policy.config import load_policy_config
-from policy.data import PolicyDataset, episode_success
+from policy.data import PolicyDataset, episode_success, finish_images
 from policy.testing import TINY, hash_embedder, synthetic_dataset
 
 
@@ -87,6 +88,25 @@ def test_augmentation_is_seeded_and_eval_is_centre_crop(data_dir):
     assert torch.equal(ev[5]["images"][cam], ref)
 
 
+def test_uint8_samples_finished_per_batch_match_float_samples(data_dir):
+    cfg = load_policy_config(TINY, {"color_jitter": 0.3})
+    flt = PolicyDataset(data_dir, cfg, embedder=hash_embedder)
+    raw = PolicyDataset(data_dir, cfg, embedder=hash_embedder, normalizer=flt.normalizer, uint8_images=True)
+    items = [(3, 1), (5, 2), (8, 3)]
+    batch = default_collate([raw[i] for i in items])
+    assert all(x.dtype == torch.uint8 for x in batch["images"].values())
+    done = finish_images(batch)
+    assert "jitter" not in done
+    for j, item in enumerate(items):
+        for cam, x in flt[item]["images"].items():
+            assert torch.allclose(done["images"][cam][j], x, atol=1e-6)
+    jittered = done["images"][cfg.cameras[0]]
+    plain = PolicyDataset(data_dir, cfg, train=False, embedder=hash_embedder, normalizer=flt.normalizer,
+                          uint8_images=True)
+    assert torch.equal(plain[(3, 1)]["jitter"], torch.ones(3))  # evaluation never jitters
+    assert not torch.equal(jittered[0], jittered[1])
+
+
 def test_language_embedded_once_per_string(data_dir):
     calls = []
 
@@ -130,3 +150,22 @@ def test_data_holdout_is_the_union_of_what_the_episodes_kept_out():
     metas = [{"holdout": {"colors": ["purple"], "shapes": []}}, {"holdout": {"colors": ["pink", "purple"]}}, {}]
     assert data_holdout(metas) == {"colors": ["pink", "purple"], "shapes": []}
     assert data_holdout([]) == {"colors": [], "shapes": []}
+
+
+def test_tcp_frame_aux_target_follows_the_sample_newest_step(data_dir):
+    from policy.data import grasp_and_release_steps, relative_to_tcp
+
+    cfg = load_policy_config(TINY, {"aux_target_weight": 1.0, "aux_target_frame": "tcp"})
+    ds = PolicyDataset(data_dir, cfg, train=False, embedder=hash_embedder)
+    raw = Dataset(data_dir)
+    seen = set()
+    for index in (0, 4, 9, 15):
+        k, s = ds.index[index]
+        arrays = raw.window(ds.episodes[k], fields=("proprio", "action"))
+        now = int(np.clip(s + cfg.obs_horizon - 1, 0, ds.lengths[k] - 1))
+        steps = grasp_and_release_steps(ds.action[k])
+        want = relative_to_tcp(arrays["action"][list(steps), :3], arrays["proprio"][now].astype(np.float64))
+        got = ds[index]["aux"]
+        torch.testing.assert_close(got, want)
+        seen.add(tuple(got.tolist()))
+    assert len(seen) > 1  # unlike the base-frame target, it changes as the arm moves

@@ -202,3 +202,17 @@ def test_aux_target_loss_trains_the_image_features_only_when_asked():
     cond = model.encode(batch["images"], batch["proprio"], batch["text"])
     feats = torch.cat([model.obs_encoder.images[c](batch["images"][c][:, -1], batch["text"]) for c in cfg.cameras], 1)
     torch.testing.assert_close(model.image_features(cond), feats)  # the slice is the newest step's cameras
+
+
+def test_tcp_frame_aux_target_is_the_offset_the_gripper_sees():
+    from datagen.schema import rot6d
+    from policy.data import AUX_TCP_SCALE, relative_to_tcp
+
+    Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # TCP yawed 90 degrees: its x axis is the base's y
+    proprio = np.concatenate([[0.1, 0.2, 0.3], rot6d(Rz), np.zeros(7)])
+    points = np.array([[0.1, 0.2 + AUX_TCP_SCALE, 0.3], [0.1 - 0.5, 0.2, 0.3 - 0.25]])
+    np.testing.assert_allclose(relative_to_tcp(points, proprio).numpy(), [1, 0, 0, 0, 2, -1], atol=1e-6)
+    cfg = load_policy_config({**TINY, "aux_target_weight": 1.0, "aux_target_frame": "tcp"})
+    assert cfg.aux_target_frame == "tcp"
+    with pytest.raises(ConfigError, match="aux_target_frame"):
+        load_policy_config({**TINY, "aux_target_frame": "world"})
