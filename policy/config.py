@@ -79,6 +79,10 @@ class PolicyConfig:
     aux_target_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
         "frame of those targets: base (absolute, normalized like the actions) or tcp (relative to the "
         "gripper at the sample's newest step: what the wrist camera sees directly)")))
+    val_fraction: float = field(default=0.0, metadata=spec(0.0, 0.5, doc=(
+        "share of the successful episodes kept out of training (whole episodes, chosen by a hash of task "
+        "and seed, so resuming keeps the split) to measure how the model does on scenes it never saw")))
+    val_every: int = field(default=500, metadata=spec(1, 10**8, doc="steps between validations"))
     color_jitter: float = field(default=0.2, metadata=spec(0.0, 1.0, doc="brightness/contrast/saturation +-"))
     # optimisation
     batch_size: int = field(default=64, metadata=spec(1, 4096, doc="per process"))

@@ -31,6 +31,7 @@ per-pixel arithmetic off the CPU workers: measured on an H100 with 14 workers, t
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -60,6 +61,12 @@ def episode_success(meta: dict) -> bool:
             if label.get(key) is not None:
                 return bool(label[key])
     return bool(meta.get("success"))
+
+
+def is_validation(meta: dict, fraction: float) -> bool:
+    """Whether an episode belongs to the validation split: a hash of (task, seed), stable across runs."""
+    digest = hashlib.sha256(f"{meta.get('task')}:{meta.get('seed')}".encode()).digest()
+    return int.from_bytes(digest[:8], "big") / 2**64 < fraction
 
 
 def data_holdout(metas: list[dict]) -> dict[str, list[str]]:
@@ -151,12 +158,20 @@ class PolicyDataset(torch.utils.data.Dataset):
     def __init__(self, data: str | Path | EpisodeStore, cfg: PolicyConfig, train: bool = True,
                  normalizer: Normalizer | None = None, embedder: Callable[[list[str]], np.ndarray] | None = None,
                  include_failures: bool | None = None, max_cache_bytes: float | None = None,
-                 uint8_images: bool = False):
+                 uint8_images: bool = False, split: str | None = None):
         self.store = data if isinstance(data, EpisodeStore) else EpisodeStore(data)
         self.cfg, self.train, self.uint8_images = cfg, train, uint8_images
         include = self.include_failures = cfg.include_failures if include_failures is None else include_failures
         rows = self.store.episodes()
         self.episodes = [r["index"] for r in rows if include or episode_success(self.store.meta(r["index"]))]
+        if split is not None:  # "train" or "val": cfg.val_fraction of the episodes are validation episodes
+            if split not in ("train", "val"):
+                raise ValueError(f"split must be 'train', 'val' or None, got {split!r}")
+            self.episodes = [i for i in self.episodes
+                             if is_validation(self.store.meta(i), cfg.val_fraction) == (split == "val")]
+        if not self.episodes and split is not None:
+            raise ValueError(f"{self.store.root}: val_fraction={cfg.val_fraction} leaves no {split} episodes "
+                             f"of its {len(rows)}; use more episodes or another val_fraction")
         if not self.episodes:
             raise ValueError(f"{self.store.root}: none of its {len(rows)} episodes is a verified success "
                              f"(pass include_failures=True to train on all)")

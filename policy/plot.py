@@ -1,7 +1,8 @@
-"""Training curves (loss on a log axis, learning rate) from metrics.jsonl to a PNG.
+"""Training curves from metrics.jsonl to a PNG: loss (log axis), learning rate and, when the run validates
+(policy.validate), the loss and the grasp-point error on unseen vs training episodes.
 
-matplotlib when it is installed; otherwise a small Pillow line plot (Pillow is a project dependency and
-matplotlib is not), so every run ends with a picture without adding a dependency.
+Drawn with Pillow (a project dependency; matplotlib is not), so every run ends with the same picture on
+every machine.
 """
 
 from __future__ import annotations
@@ -9,6 +10,9 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+
+COLORS = ("royalblue", "darkorange", "seagreen")
+Line = tuple[str, list[int], list[float]]  # label, steps, values
 
 
 def read_metrics(path: str | Path) -> list[dict]:
@@ -19,54 +23,53 @@ def read_metrics(path: str | Path) -> list[dict]:
 
 
 def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
-    rows = [r for r in read_metrics(metrics_path) if "loss" in r]
-    if not rows:
+    rows = read_metrics(metrics_path)
+    train = [r for r in rows if "loss" in r]
+    if not train:
         return None
-    steps = [r["step"] for r in rows]
-    series = [("loss", [r["loss"] for r in rows], True), ("lr", [r["lr"] for r in rows], False)]
-    try:
-        import matplotlib
+    checks = [r for r in rows if "val_loss" in r]
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+    def line(label: str, rs: list[dict], key: str) -> Line:
+        return label, [r["step"] for r in rs], [r[key] for r in rs]
 
-        fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
-        for ax, (name, ys, log) in zip(axes, series):
-            ax.plot(steps, ys)
-            ax.set_ylabel(name)
-            if log:
-                ax.set_yscale("log")
-            ax.grid(alpha=0.3)
-        axes[-1].set_xlabel("step")
-        fig.tight_layout()
-        fig.savefig(out_png, dpi=100)
-        plt.close(fig)
-    except ImportError:
-        _pil_plot(steps, series, out_png)
+    loss = [line("train", train, "loss")]
+    if checks:
+        loss += [line("unseen episodes", checks, "val_loss"), line("training episodes", checks, "fit_loss")]
+    panels = [("loss", loss, True), ("lr", [line("lr", train, "lr")], False)]
+    grasp = [r for r in checks if "val_grasp_cm" in r]
+    if grasp:
+        panels.append(("grasp point error [cm]", [line("unseen episodes", grasp, "val_grasp_cm"),
+                                                  line("training episodes", grasp, "fit_grasp_cm")], False))
+    _draw(panels, out_png)
     return Path(out_png)
 
 
-def _pil_plot(steps: list[int], series: list[tuple[str, list[float], bool]], out_png: str | Path) -> None:
+def _draw(panels: list[tuple[str, list[Line], bool]], out_png: str | Path) -> None:
     from PIL import Image, ImageDraw
 
-    W, H, pad = 800, 500, 50
+    W, pad, panel_h = 800, 50, 225
+    H = panel_h * len(panels) + pad
     img = Image.new("RGB", (W, H), "white")
     draw = ImageDraw.Draw(img)
-    panel_h = (H - pad) // len(series)
-    x0, x1 = min(steps), max(steps) if max(steps) > min(steps) else min(steps) + 1
-    for k, (name, raw, log) in enumerate(series):
+    all_steps = [s for _, lines, _ in panels for _, steps, _ in lines for s in steps]
+    x0, x1 = min(all_steps), max(all_steps)
+    x1 = x1 if x1 > x0 else x0 + 1
+    for k, (name, lines, log) in enumerate(panels):
         top, bottom = k * panel_h + 20, (k + 1) * panel_h - 10
-        ys = [math.log10(max(y, 1e-12)) for y in raw] if log else raw
-        lo, hi = min(ys), max(ys)
+        tf = (lambda y: math.log10(max(y, 1e-12))) if log else (lambda y: y)
+        ys_all = [tf(y) for _, _, ys in lines for y in ys]
+        lo, hi = min(ys_all), max(ys_all)
         hi = hi if hi > lo else lo + 1e-12
         draw.rectangle([pad, top, W - 20, bottom], outline="gray")
-        draw.text((pad + 5, top + 3), f"{name}{' (log axis)' if log else ''}: last {raw[-1]:.4g}, "
-                  f"range {min(raw):.3g}..{max(raw):.3g}", fill="black")
-        pts = [(pad + (s - x0) / (x1 - x0) * (W - 20 - pad), bottom - (y - lo) / (hi - lo) * (bottom - top - 15))
-               for s, y in zip(steps, ys)]
-        if len(pts) > 1:
-            draw.line(pts, fill=("royalblue", "darkorange")[k % 2], width=2)
-        else:
-            draw.ellipse([pts[0][0] - 2, pts[0][1] - 2, pts[0][0] + 2, pts[0][1] + 2], fill="royalblue")
+        legend = ", ".join(f"{label} {ys[-1]:.4g}" for label, _, ys in lines)
+        draw.text((pad + 5, top + 3), f"{name}{' (log axis)' if log else ''}, last: {legend}", fill="black")
+        for j, (_, steps, ys) in enumerate(lines):
+            pts = [(pad + (s - x0) / (x1 - x0) * (W - 20 - pad), bottom - (tf(y) - lo) / (hi - lo) * (bottom - top - 15))
+                   for s, y in zip(steps, ys)]
+            color = COLORS[j % len(COLORS)] if len(lines) > 1 else COLORS[k % 2]
+            if len(pts) > 1:
+                draw.line(pts, fill=color, width=2)
+            for x, y in pts if len(lines) > 1 or len(pts) == 1 else ():
+                draw.ellipse([x - 2, y - 2, x + 2, y + 2], fill=color)
     draw.text((pad, H - 25), f"step {x0} .. {x1}", fill="black")
     img.save(out_png)

@@ -39,6 +39,7 @@ from policy.data import PolicyDataset, finish_images
 from policy.model import DiffusionPolicy, count_params
 from policy.normalize import Normalizer
 from policy.plot import plot_metrics
+from policy.validate import Validator
 
 
 def resolve_device(device: str = "auto") -> torch.device:
@@ -199,8 +200,16 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
         if recorded != cfg:
             raise ValueError(f"{run_dir} was started with another config; resume=False starts it afresh")
         normalizer = Normalizer.load(run_dir / "stats.npz")
-    ds = PolicyDataset(data_dir, cfg, train=True, normalizer=normalizer, embedder=embedder, uint8_images=True)
+    split = "train" if cfg.val_fraction > 0 else None
+    ds = PolicyDataset(data_dir, cfg, train=True, normalizer=normalizer, embedder=embedder, uint8_images=True,
+                       split=split)
     info = ds.info()
+    validator = None
+    if split and rank == 0:  # streamed from the store (max_cache_bytes=0): a few hundred samples per check
+        sets = [PolicyDataset(data_dir, cfg, train=False, normalizer=ds.normalizer, embedder=embedder,
+                              uint8_images=True, split=s, max_cache_bytes=0) for s in ("val", "train")]
+        validator = Validator(*sets, seed=cfg.seed)
+        info["validation_episodes"] = len(sets[0].episodes)
     if ckpt is not None:
         old = json.loads((run_dir / "dataset.json").read_text())["content_hash"]
         if old != info["content_hash"]:
@@ -268,6 +277,9 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
                         f.write(json.dumps(row) + "\n")
                 bar.set_postfix(loss=f"{mean:.4f}", lr=f"{row['lr']:.2e}")
                 acc, n_acc, t_log = 0.0, 0, now
+            if validator is not None and (done % cfg.val_every == 0 or done == batches.stop):
+                with open(run_dir / "metrics.jsonl", "a") as f:
+                    f.write(json.dumps({"step": done, **validator(ema.model, dev)}) + "\n")
             if done % cfg.checkpoint_every == 0 and done != batches.stop and rank == 0:
                 _save(run_dir, done, total, model, ema, opt, sched, cfg)
     except KeyboardInterrupt:
@@ -284,7 +296,11 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             summary["checkpoint"] = str(_save(run_dir, step, total, model, ema, opt, sched, cfg))
         rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if x.strip()] \
             if (run_dir / "metrics.jsonl").exists() else []
-        summary["final_loss"] = rows[-1]["loss"] if rows else None
+        losses = [r for r in rows if "loss" in r]
+        summary["final_loss"] = losses[-1]["loss"] if losses else None
+        checks = [r for r in rows if "val_loss" in r]
+        if checks:
+            summary["validation"] = checks[-1]
         summary["plot"] = str(plot_metrics(run_dir / "metrics.jsonl", run_dir / "metrics.png"))
         (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if world > 1:

@@ -98,3 +98,37 @@ def test_ddp_gloo_two_processes_stay_in_sync(data_dir, tmp_path):
     assert len(rows) == 3  # written once (rank 0), not per process
     model, _, info = load_run_model(run)
     assert info["step"] == 3
+
+
+def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
+    from policy.data import episode_success, is_validation
+    from policy.validate import Validator
+
+    data = synthetic_dataset(tmp_path / "data", episodes=14, smooth=True)
+    cfg = load_policy_config(TINY, {"val_fraction": 0.3, "val_every": 4, "log_every": 4, "aux_target_weight": 1.0})
+    val = PolicyDataset(data, cfg, train=False, embedder=hash_embedder, split="val")
+    fit = PolicyDataset(data, cfg, train=False, embedder=hash_embedder, split="train", normalizer=val.normalizer)
+    metas = {i: val.store.meta(i) for i in range(len(val.store))}
+    ok = [i for i, m in metas.items() if episode_success(m)]
+    assert sorted(val.episodes + fit.episodes) == ok and not set(val.episodes) & set(fit.episodes)
+    assert val.episodes == [i for i in ok if is_validation(metas[i], 0.3)] != []
+    check = Validator(val, fit, samples=16, batch=8)
+    model = DiffusionPolicy(cfg)
+    first = check(model, torch.device("cpu"))
+    assert first == check(model, torch.device("cpu"))  # fixed samples, noise and timesteps
+    assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm"}
+
+    summary = train(data, cfg, tmp_path / "run", steps=10, embedder=hash_embedder, progress=False, threads=1)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    checks = [r for r in rows if "val_loss" in r]
+    assert [r["step"] for r in checks] == [4, 8, 10]
+    assert all(r["val_grasp_cm"] > 0 and r["fit_loss"] > 0 for r in checks)
+    assert summary["validation"] == checks[-1]
+    from PIL import Image
+
+    with Image.open(tmp_path / "run" / "metrics.png") as im:  # loss, lr and the grasp-point panel
+        assert im.size[1] > 3 * 200
+    info = json.loads((tmp_path / "run" / "dataset.json").read_text())
+    assert info["validation_episodes"] == len(val.episodes) and info["episodes_used"] == len(fit.episodes)
+    with pytest.raises(ValueError, match="leaves no val episodes"):
+        PolicyDataset(data, load_policy_config(TINY, {"val_fraction": 1e-9}), embedder=hash_embedder, split="val")

@@ -1,0 +1,70 @@
+"""Validation during training: the same measures on episodes the model never trained on and on episodes it
+did, so the gap between them shows when the model memorizes scenes instead of learning the skill.
+
+A run's open-loop loss can keep falling while the closed-loop policy fails in new scenes: a run on 1495
+pick_place episodes located the grasp point from its images to 1.4 cm on training episodes and to 12 cm
+on unseen ones (a constant guess: 17 cm). Measured every `val_every` steps on fixed samples, fixed noise
+and fixed diffusion timesteps (so successive rows compare), with the EMA weights, centre crops:
+
+  loss      the diffusion (noise-prediction) MSE
+  grasp_cm  median error of the auxiliary head's grasp point (only with aux_target_weight > 0)
+
+each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import default_collate
+
+from policy.data import AUX_TCP_SCALE, PolicyDataset, finish_images
+
+
+class Validator:
+    def __init__(self, val: PolicyDataset, fit: PolicyDataset, samples: int = 512, batch: int = 64, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        self.sets = {name: (ds, rng.choice(len(ds), min(samples, len(ds)), replace=False))
+                     for name, ds in (("val", val), ("fit", fit))}
+        self.batch, self.seed = batch, seed
+        self.normalizer = fit.normalizer
+
+    @torch.no_grad()
+    def __call__(self, model, device) -> dict:
+        was_training = model.training
+        model.eval()
+        out = {}
+        for name, (ds, idx) in self.sets.items():
+            g = torch.Generator().manual_seed(self.seed)
+            losses, errors = [], []
+            for lo in range(0, len(idx), self.batch):
+                items = [ds[int(i)] for i in idx[lo:lo + self.batch]]
+                batch = default_collate(items)
+                if "jitter" in batch:
+                    batch = finish_images(batch)
+                batch = {k: ({c: x.to(device) for c, x in v.items()} if isinstance(v, dict) else v.to(device))
+                         for k, v in batch.items()}
+                noise = torch.randn(batch["action"].shape, generator=g).to(device)
+                t = torch.randint(0, model.cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(device)
+                cond = model.encode(batch["images"], batch["proprio"], batch["text"])
+                ab = model.alphas_cumprod[t].view(-1, 1, 1)
+                noisy = ab.sqrt() * batch["action"] + (1 - ab).sqrt() * noise
+                losses.append(F.mse_loss(model(noisy, t, cond), noise, reduction="none").mean(dim=(1, 2)).cpu())
+                if model.aux_head is not None:
+                    pred = model.aux_head(model.image_features(cond))[:, :3].float().cpu().numpy()
+                    errors.append(self._metres(pred) - self._metres(batch["aux"][:, :3].cpu().numpy()))
+            out[f"{name}_loss"] = float(torch.cat(losses).mean())
+            if errors:
+                out[f"{name}_grasp_cm"] = float(np.median(np.linalg.norm(np.concatenate(errors), axis=1)) * 100)
+        model.train(was_training)
+        return out
+
+    def _metres(self, p: np.ndarray) -> np.ndarray:
+        """Aux grasp points in the head's units -> metres (tcp frame: a scale; base frame: the action stats)."""
+        ds = self.sets["fit"][0]
+        if ds.cfg.aux_target_frame == "tcp":
+            return p * AUX_TCP_SCALE
+        a = np.zeros((len(p), ds.cfg.action_dim), np.float32)
+        a[:, :3] = p
+        return self.normalizer.unnormalize_action(a)[:, :3]

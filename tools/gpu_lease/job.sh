@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# On the lent box: set up, generate EPISODES pick_place episodes on all cores, start one training per
+# NAME='OVERRIDES_JSON' in its own session, all due SECONDS after this script started; then return.
+# usage: bash tools/gpu_lease/job.sh EPISODES SECONDS NAME='{...}' [NAME2='{...}' ...]
+set -u
+N=$1; LEFT=$2; shift 2
+T0=$(date +%s)
+export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl
+PY=${PY:-python3}  # a dry run here: PY=.venv/bin/python (no GPU: the set-up below is skipped)
+if command -v nvidia-smi >/dev/null; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
+    for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+    nvidia-smi -L
+    export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+fi
+$PY -c "import mujoco, ompl, zarr, torch; print('torch', torch.__version__, torch.cuda.is_available())" || exit 4
+W=$(( $(nproc) - 1 ))
+OMP_NUM_THREADS=1 timeout -s INT ${DATAGEN_LIMIT_S:-330} $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" \
+    datagen --task pick_place --episodes "$N" --seed-offset 1000 --holdout-color purple --out /tmp/data --workers $W \
+    2>&1 | tr '\r' '\n' | tail -3
+sleep 2
+echo "datagen done at $(( $(date +%s) - T0 )) s"
+for spec in "$@"; do
+    name=${spec%%=*}; ov=${spec#*=}
+    setsid nohup $PY tools/gpu_lease/train.py /tmp/data "/tmp/runs/$name" $(( T0 + LEFT )) "$ov" \
+        > "/tmp/train_$name.log" 2>&1 < /dev/null &
+    echo "started $name: $ov"
+done

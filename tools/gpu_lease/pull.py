@@ -1,0 +1,21 @@
+"""Copy a run's newest checkpoint as EMA weights only (fits the 16 MiB a file) and its small files to $OUT."""
+import os
+import sys
+import tarfile
+from pathlib import Path
+
+import torch
+
+run = Path(sys.argv[1])
+dst = Path(os.environ["OUT"])
+ck = sorted((run / "checkpoints").glob("step_*.pt"))
+if ck:
+    s = torch.load(ck[-1], map_location="cpu", weights_only=False)
+    ema = s["ema"]["model"]  # "model" shares its storage: saved once
+    torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema, "ema": {"model": ema, "updates": 0},
+                "config": s["config"], "torch": s["torch"]}, dst / f"{run.name}.pt")
+    print("pulled", run.name, ck[-1].name)
+with tarfile.open(dst / f"{run.name}.tar", "w") as tar:
+    for f in ("config.json", "stats.npz", "dataset.json", "metrics.jsonl", "plan.json", "summary.json", "DONE"):
+        if (run / f).exists():
+            tar.add(run / f, arcname=f)

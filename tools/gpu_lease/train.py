@@ -1,0 +1,47 @@
+"""One training run on the lent box: policy.train.train with the precomputed embeddings and a step count
+fitted to the time left. usage: python train.py DATA RUN_DIR DEADLINE_EPOCH_S OVERRIDES_JSON"""
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.getcwd())
+from policy.train import train  # noqa: E402
+
+CONFIG = "policy/configs/demo_pick_place.toml"
+
+
+def main() -> None:
+    data, out, deadline, extra = sys.argv[1], Path(sys.argv[2]), float(sys.argv[3]), json.loads(sys.argv[4])
+    tab = np.load(".gpu/texts.npz")
+    row = {t: i for i, t in enumerate(tab["texts"].tolist())}
+
+    def embed(texts):
+        missing = [t for t in texts if t not in row]
+        if missing:
+            raise KeyError(f"{len(missing)} texts were not embedded ahead (texts.py), e.g. {missing[:3]}")
+        return tab["table"][[row[t] for t in texts]]
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"  # cpu: a dry run of the scripts
+    ov = {"batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
+          "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
+          **extra}
+    # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
+    probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
+    train(data, CONFIG, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=False)
+    rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    rate = float(np.median([r["steps_per_s"] for r in rows[len(rows) // 2:]]))
+    load_s = time.time() - t0 - probe / rate
+    steps = int(max(probe + 100, rate * (deadline - time.time() - load_s - 30)))
+    (out / "plan.json").write_text(json.dumps({"rate": rate, "load_s": load_s, "steps": steps, "overrides": ov}))
+    print(out.name, json.dumps(train(data, CONFIG, out, steps=steps, embedder=embed, overrides=ov, device=device,
+                                     progress=False)), flush=True)
+    (out / "DONE").write_text("ok")
+
+
+if __name__ == "__main__":
+    main()
