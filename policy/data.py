@@ -266,13 +266,19 @@ class PolicyDataset(torch.utils.data.Dataset):
             j = int(self.subtask[k][now])
             if 0 <= j < len(self.subtask_labels[k]):
                 text = self.subtask_labels[k][j]
-        aux = relative_to_tcp(self.aux_points[k], self.tcp_pose[k][now]) if cfg.aux_target_frame == "tcp" \
-            else self.aux[k]
-        out = {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]), "aux": aux,
+        out = {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]), "aux": self.aux_target(index),
                "action": torch.from_numpy(self.action[k][act]), "text": self.text_table[self.text_row[text]]}
         if self.uint8_images:
             out["jitter"] = torch.from_numpy(jitter)
         return out
+
+    def aux_target(self, index: int) -> torch.Tensor:
+        """The sample's auxiliary target (6,) in the config's `aux_target_frame`, without reading images."""
+        k, s = self.index[index]
+        if self.cfg.aux_target_frame == "tcp":
+            now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
+            return relative_to_tcp(self.aux_points[k], self.tcp_pose[k][now])
+        return self.aux[k]
 
     def info(self) -> dict:
         """What the run records about its data (copied into the bundle manifest)."""

@@ -39,7 +39,8 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
     grasp = [r for r in checks if "val_grasp_cm" in r]
     if grasp:
         panels.append(("grasp point error [cm]", [line("unseen episodes", grasp, "val_grasp_cm"),
-                                                  line("training episodes", grasp, "fit_grasp_cm")], False))
+                                                  line("training episodes", grasp, "fit_grasp_cm"),
+                                                  line("constant guess", grasp, "guess_grasp_cm")], False))
     _draw(panels, out_png)
     return Path(out_png)
 

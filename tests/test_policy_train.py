@@ -116,7 +116,10 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     model = DiffusionPolicy(cfg)
     first = check(model, torch.device("cpu"))
     assert first == check(model, torch.device("cpu"))  # fixed samples, noise and timesteps
-    assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm"}
+    assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm", "guess_grasp_cm"}
+    for ds in (val, fit):  # the image-free target is the one the samples carry
+        assert all(torch.equal(ds.aux_target(i), ds[i]["aux"]) for i in (0, len(ds) // 2, len(ds) - 1))
+    assert first["guess_grasp_cm"] > 0
 
     summary = train(data, cfg, tmp_path / "run", steps=10, embedder=hash_embedder, progress=False, threads=1)
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
