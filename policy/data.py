@@ -115,6 +115,13 @@ def finish_images(batch: dict) -> dict:
     return batch
 
 
+def to_device(batch, dev):
+    """A (nested dict of) collated tensor(s) moved to `dev` (asynchronously from pinned memory)."""
+    if isinstance(batch, dict):
+        return {k: to_device(v, dev) for k, v in batch.items()}
+    return batch.to(dev, non_blocking=True)
+
+
 # metres -> units of the "tcp" auxiliary target: offsets across the reachable table come out about unit size
 AUX_TCP_SCALE = 0.25
 

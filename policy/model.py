@@ -272,13 +272,17 @@ class DiffusionPolicy(nn.Module):
         noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
         """
         cond = self.encode(batch["images"], batch["proprio"], batch["text"])
-        ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
-        noisy = ab.sqrt() * batch["action"] + (1 - ab).sqrt() * noise
-        loss = F.mse_loss(self(noisy, timesteps, cond), noise)
+        loss = F.mse_loss(self.predict_added_noise(cond, batch["action"], noise, timesteps), noise)
         if self.aux_head is not None:
             loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_head(self.image_features(cond)),
                                                                   batch["aux"])
         return loss
+
+    def predict_added_noise(self, cond: torch.Tensor, action: torch.Tensor, noise: torch.Tensor,
+                            timesteps: torch.Tensor) -> torch.Tensor:
+        """Noise `action` to x_t with `noise` at `timesteps` and predict that noise back: (B, Tp, Da)."""
+        ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
+        return self(ab.sqrt() * action + (1 - ab).sqrt() * noise, timesteps, cond)
 
     def image_features(self, cond: torch.Tensor) -> torch.Tensor:
         """The newest observation step's camera features, sliced out of the global cond (see the layout

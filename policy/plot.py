@@ -38,9 +38,11 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
     panels = [("loss", loss, True), ("lr", [line("lr", train, "lr")], False)]
     grasp = [r for r in checks if "val_grasp_cm" in r]
     if grasp:
-        panels.append(("grasp point error [cm]", [line("unseen episodes", grasp, "val_grasp_cm"),
-                                                  line("training episodes", grasp, "fit_grasp_cm"),
-                                                  line("constant guess", grasp, "guess_grasp_cm")], False))
+        lines = [line("unseen episodes", grasp, "val_grasp_cm"), line("training episodes", grasp, "fit_grasp_cm")]
+        guessed = [r for r in grasp if "guess_grasp_cm" in r]  # rows written before it was logged have none
+        if guessed:
+            lines.append(line("constant guess", guessed, "guess_grasp_cm"))
+        panels.append(("grasp point error [cm]", lines, False))
     _draw(panels, out_png)
     return Path(out_png)
 
@@ -70,7 +72,8 @@ def _draw(panels: list[tuple[str, list[Line], bool]], out_png: str | Path) -> No
             color = COLORS[j % len(COLORS)] if len(lines) > 1 else COLORS[k % 2]
             if len(pts) > 1:
                 draw.line(pts, fill=color, width=2)
-            for x, y in pts if len(lines) > 1 or len(pts) == 1 else ():
-                draw.ellipse([x - 2, y - 2, x + 2, y + 2], fill=color)
+            if len(pts) <= 60:  # dots mark sparse series (validation rows), not the per-log-step curves
+                for x, y in pts:
+                    draw.ellipse([x - 2, y - 2, x + 2, y + 2], fill=color)
     draw.text((pad, H - 25), f"step {x0} .. {x1}", fill="black")
     img.save(out_png)

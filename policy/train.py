@@ -35,7 +35,7 @@ from torch.utils.data import DataLoader, Sampler
 from torch.utils.data._utils.collate import default_collate
 
 from policy.config import PolicyConfig, config_from_dict, load_policy_config
-from policy.data import PolicyDataset, finish_images
+from policy.data import PolicyDataset, finish_images, to_device
 from policy.model import DiffusionPolicy, count_params
 from policy.normalize import Normalizer
 from policy.plot import plot_metrics
@@ -251,7 +251,7 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     amp = cfg.amp and dev.type == "cuda"
     try:
         for k, batch in enumerate(loader, start):
-            batch = finish_images(_to(batch, dev))
+            batch = finish_images(to_device(batch, dev))
             g = torch.Generator().manual_seed(step_seed(cfg.seed, k, rank, 1))
             noise = torch.randn(batch["action"].shape, generator=g).to(dev)
             t = torch.randint(0, cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(dev)
@@ -317,12 +317,6 @@ class _Loss(torch.nn.Module):
 
     def forward(self, batch, noise, t):
         return self.policy.loss(batch, noise, t)
-
-
-def _to(batch, dev):
-    if isinstance(batch, dict):
-        return {k: _to(v, dev) for k, v in batch.items()}
-    return batch.to(dev, non_blocking=True)
 
 
 def _mean_over_ranks(x: float, dev, world: int) -> float:

@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch.utils.data import default_collate
 
-from policy.data import AUX_TCP_SCALE, PolicyDataset, finish_images
+from policy.data import AUX_TCP_SCALE, PolicyDataset, finish_images, to_device
 
 
 class Validator:
@@ -46,18 +45,13 @@ class Validator:
             g = torch.Generator().manual_seed(self.seed)
             losses, errors = [], []
             for lo in range(0, len(idx), self.batch):
-                items = [ds[int(i)] for i in idx[lo:lo + self.batch]]
-                batch = default_collate(items)
-                if "jitter" in batch:
-                    batch = finish_images(batch)
-                batch = {k: ({c: x.to(device) for c, x in v.items()} if isinstance(v, dict) else v.to(device))
-                         for k, v in batch.items()}
+                batch = to_device(default_collate([ds[int(i)] for i in idx[lo:lo + self.batch]]), device)
+                batch = finish_images(batch) if ds.uint8_images else batch
                 noise = torch.randn(batch["action"].shape, generator=g).to(device)
                 t = torch.randint(0, model.cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(device)
                 cond = model.encode(batch["images"], batch["proprio"], batch["text"])
-                ab = model.alphas_cumprod[t].view(-1, 1, 1)
-                noisy = ab.sqrt() * batch["action"] + (1 - ab).sqrt() * noise
-                losses.append(F.mse_loss(model(noisy, t, cond), noise, reduction="none").mean(dim=(1, 2)).cpu())
+                err = model.predict_added_noise(cond, batch["action"], noise, t) - noise
+                losses.append(err.square().mean(dim=(1, 2)).cpu())
                 if model.aux_head is not None:
                     pred = model.aux_head(model.image_features(cond))[:, :3].float().cpu().numpy()
                     errors.append(self._metres(pred) - self._metres(batch["aux"][:, :3].cpu().numpy()))
