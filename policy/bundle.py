@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from policy.action_frame import FRAMES, from_tcp
 from policy.onnx_opsets import onnx_opsets
 
 FORMAT = "sudd-policy-bundle"
@@ -113,6 +114,8 @@ def _check_manifest(m: dict) -> None:
     _need(0 < h["action"] and h["execute_from"] + h["action"] <= h["pred"] and h["execute_from"] < h["obs"],
           f"inconsistent horizons {h}")
     _need(d.get("text") == TEXT_DIM and len(m["image_size"]) == 2 and m["cameras"], "bad text dim, image size or cameras")
+    frame = m.get("action_layout", {}).get("frame", "base")
+    _need(frame in FRAMES, f"action_layout frame {frame!r} is none of {list(FRAMES)}")
     s = m["ddim"]
     ts, ab, abp = s.get("timesteps", []), s.get("alpha_bar", []), s.get("alpha_bar_prev", [])
     _need(len(ts) > 0 and len(ts) == len(ab) == len(abp), "ddim schedule lists are empty or differ in length")
@@ -199,8 +202,9 @@ class Bundle:
         self.proprio_dim, self.action_dim = m["dims"]["proprio"], m["dims"]["action"]
         self.execute = slice(h["execute_from"], h["execute_from"] + h["action"])
         self.instructions, self.tasks = list(m.get("instructions", [])), list(m.get("tasks", []))
-        rot = m.get("action_layout", {}).get("rot6d", [3, 9])
-        self._rot = slice(*rot)
+        layout = m.get("action_layout", {})
+        self._rot = slice(*layout.get("rot6d", [3, 9]))
+        self.action_frame = layout.get("frame", "base")  # bundles exported before the tcp frame: base
         s = m["ddim"]
         self._schedule = list(zip(s["timesteps"], s["alpha_bar"], s["alpha_bar_prev"]))
         self._clip = bool(m.get("diffusion", {}).get("clip_sample", True))
@@ -343,8 +347,9 @@ class Bundle:
             if self._clip:
                 x0 = x0.clip(-1.0, 1.0)
             x = (math.sqrt(ab_prev) * x0 + math.sqrt(1.0 - ab_prev) * eps).astype(np.float32)
-        a = (x[0] - self.stats["action_offset"]) / self.stats["action_scale"]
-        return _orthonormalize(a.astype(np.float32), self._rot)
+        a = _orthonormalize(((x[0] - self.stats["action_offset"]) / self.stats["action_scale"]).astype(np.float32),
+                            self._rot)
+        return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
 
     def info(self) -> dict:
         m = self.manifest

@@ -79,6 +79,9 @@ class PolicyConfig:
     aux_target_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
         "frame of those targets: base (absolute, normalized like the actions) or tcp (relative to the "
         "gripper at the sample's newest step: what the wrist camera sees directly)")))
+    action_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
+        "frame the policy learns its chunks in: base (absolute targets) or tcp (relative to the gripper at "
+        "the chunk's newest observation, see policy.action_frame); the bundle always emits absolute targets")))
     val_fraction: float = field(default=0.0, metadata=spec(0.0, 0.5, doc=(
         "share of the successful episodes kept out of training (whole episodes, chosen by a hash of task "
         "and seed, so resuming keeps the split) to measure how the model does on scenes it never saw")))
@@ -114,6 +117,9 @@ class PolicyConfig:
             raise ConfigError("encoder_strides needs one entry per encoder_widths stage")
         if any(c > s for c, s in zip(self.crop_size, self.image_size)):
             raise ConfigError(f"crop_size {self.crop_size} exceeds image_size {self.image_size}")
+        if self.action_frame == "tcp" and self.aux_target_weight > 0 and self.aux_target_frame != "tcp":
+            raise ConfigError("action_frame 'tcp' needs aux_target_frame 'tcp' when aux_target_weight > 0 (a "
+                              "'base' aux target is read in the absolute actions' normalized units)")
         if len(set(self.cameras)) != len(self.cameras) or not self.cameras:
             raise ConfigError(f"cameras {self.cameras} must be distinct and non-empty")
         if self.inference_steps > self.num_train_timesteps:

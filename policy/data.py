@@ -41,6 +41,7 @@ import torch
 
 from datagen.schema import rot6d_to_matrix
 from datagen.store import Dataset as EpisodeStore
+from policy.action_frame import relative_windows, to_tcp
 from policy.config import PolicyConfig
 from policy.normalize import Normalizer
 
@@ -127,22 +128,21 @@ AUX_TCP_SCALE = 0.25
 
 
 def grasp_and_release_steps(action: np.ndarray) -> tuple[int, int]:
-    """(T, Da) normalized actions -> the step where the gripper first closes and the step where it next
-    opens (the episode's last step if it never does)."""
-    # normalized gripper: raw 0..1 maps to -1..1, or to 0 if it never varied (never closed)
-    shut = action[:, -1] > 0.0
+    """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> the step where the gripper first
+    closes and the step where it next opens (the episode's last step if it never does)."""
+    shut = action[:, -1] > 0.5
     t_close = int(np.argmax(shut)) if shut.any() else len(shut) - 1
     after = np.flatnonzero(~shut[t_close:])
     t_open = t_close + int(after[0]) if len(after) else len(shut) - 1
     return t_close, t_open
 
 
-def grasp_and_release(action: np.ndarray) -> torch.Tensor:
-    """(T, Da) normalized actions -> (6,): the positions at `grasp_and_release_steps`, in the actions'
-    normalized units. The "base" auxiliary target of `aux_target_weight`: where the named object is and
-    where it goes, both readable from the images."""
-    t_close, t_open = grasp_and_release_steps(action)
-    return torch.from_numpy(np.concatenate([action[t_close, :3], action[t_open, :3]]).astype(np.float32))
+def grasp_and_release(normalized: np.ndarray, steps: tuple[int, int]) -> torch.Tensor:
+    """(T, Da) normalized actions, `grasp_and_release_steps` -> (6,): the positions at those steps, in the
+    actions' normalized units. The "base" auxiliary target of `aux_target_weight`: where the named object is
+    and where it goes, both readable from the images."""
+    t_close, t_open = steps
+    return torch.from_numpy(np.concatenate([normalized[t_close, :3], normalized[t_open, :3]]).astype(np.float32))
 
 
 def relative_to_tcp(points: np.ndarray, proprio: np.ndarray) -> torch.Tensor:
@@ -187,19 +187,25 @@ class PolicyDataset(torch.utils.data.Dataset):
             if arrays["proprio"].shape[1] != cfg.proprio_dim or arrays["action"].shape[1] != cfg.action_dim:
                 raise ValueError(f"episode {i}: proprio/action dims {arrays['proprio'].shape[1]}/"
                                  f"{arrays['action'].shape[1]} != config {cfg.proprio_dim}/{cfg.action_dim}")
-        self.normalizer = normalizer or Normalizer.fit(np.concatenate([a["proprio"] for a in low]),
-                                                       np.concatenate([a["action"] for a in low]))
+        To, Tp, Ta = cfg.obs_horizon, cfg.pred_horizon, cfg.action_horizon
+        relative = cfg.action_frame == "tcp"
+        if normalizer is None:  # tcp frame: the stats of what the model learns, every window in its own frame
+            actions = [relative_windows(a["action"], a["proprio"], To, Tp) if relative else a["action"] for a in low]
+            normalizer = Normalizer.fit(np.concatenate([a["proprio"] for a in low]), np.concatenate(actions))
+        self.normalizer = normalizer
         self.proprio = [self.normalizer.normalize_proprio(a["proprio"]) for a in low]
-        self.action = [self.normalizer.normalize_action(a["action"]) for a in low]
+        # what the sampler reads: normalized targets (base frame), or the recorded ones that each window
+        # turns relative to its own newest TCP pose before normalizing (tcp frame)
+        self.action = [a["action"] if relative else self.normalizer.normalize_action(a["action"]) for a in low]
+        self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
-        self.aux = [grasp_and_release(a) for a in self.action]
+        steps = [grasp_and_release_steps(a["action"]) for a in low]
         if cfg.aux_target_frame == "tcp":
-            steps = [grasp_and_release_steps(a) for a in self.action]
             self.aux_points = [a["action"][list(ts), :3] for a, ts in zip(low, steps)]
-            self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
+        else:
+            self.aux = [grasp_and_release(a, ts) for a, ts in zip(self.action, steps)]
         self.lengths = [len(a["action"]) for a in low]
         self._language(embedder)
-        To, Tp, Ta = cfg.obs_horizon, cfg.pred_horizon, cfg.action_horizon
         self.index = [(k, s) for k, T in enumerate(self.lengths)
                       for s in range(-(To - 1), max(-(To - 1), T - Tp + Ta - 1) + 1)]
         H, W = cfg.image_size
@@ -273,8 +279,11 @@ class PolicyDataset(torch.utils.data.Dataset):
             j = int(self.subtask[k][now])
             if 0 <= j < len(self.subtask_labels[k]):
                 text = self.subtask_labels[k][j]
+        action = self.action[k][act]
+        if cfg.action_frame == "tcp":
+            action = self.normalizer.normalize_action(to_tcp(action, self.tcp_pose[k][now]))
         out = {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]), "aux": self.aux_target(index),
-               "action": torch.from_numpy(self.action[k][act]), "text": self.text_table[self.text_row[text]]}
+               "action": torch.from_numpy(action), "text": self.text_table[self.text_row[text]]}
         if self.uint8_images:
             out["jitter"] = torch.from_numpy(jitter)
         return out

@@ -206,7 +206,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                          "execute_from": cfg.obs_horizon - 1, "control_hz": 10.0},
             "dims": {"proprio": cfg.proprio_dim, "action": cfg.action_dim, "text": TEXT_DIM,
                      "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim},
-            "action_layout": {"position": [0, 3], "rot6d": [3, 9], "gripper": [9, 10]},
+            "action_layout": {"position": [0, 3], "rot6d": [3, 9], "gripper": [9, 10], "frame": cfg.action_frame},
             "cameras": list(cfg.cameras), "image_size": list(cfg.image_size), "crop_size": list(cfg.crop_size),
             "graphs": specs,
             "tokenizer": {"dir": "tokenizer", "file": "tokenizer/tokenizer.json", "max_length": MAX_SEQ_LENGTH},

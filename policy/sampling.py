@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from policy.action_frame import from_tcp
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
 from policy.schedule import ddim_schedule, ddim_step
@@ -60,4 +61,5 @@ def predict_chunk(model: DiffusionPolicy, normalizer: Normalizer, images: dict[s
     p = torch.from_numpy(normalizer.normalize_proprio(proprio))[None]
     cond = model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
     x = ddim_sample(model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None])
-    return orthonormalize_rot6d(normalizer.unnormalize_action(x[0].numpy()))
+    a = orthonormalize_rot6d(normalizer.unnormalize_action(x[0].numpy()))
+    return from_tcp(a, np.asarray(proprio)[-1, :9]) if model.cfg.action_frame == "tcp" else a

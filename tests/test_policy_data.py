@@ -163,7 +163,7 @@ def test_tcp_frame_aux_target_follows_the_sample_newest_step(data_dir):
         k, s = ds.index[index]
         arrays = raw.window(ds.episodes[k], fields=("proprio", "action"))
         now = int(np.clip(s + cfg.obs_horizon - 1, 0, ds.lengths[k] - 1))
-        steps = grasp_and_release_steps(ds.action[k])
+        steps = grasp_and_release_steps(arrays["action"])
         want = relative_to_tcp(arrays["action"][list(steps), :3], arrays["proprio"][now].astype(np.float64))
         got = ds[index]["aux"]
         torch.testing.assert_close(got, want)

@@ -175,15 +175,15 @@ def test_default_config_is_valid():
 
 
 def test_aux_target_loss_trains_the_image_features_only_when_asked():
-    from policy.data import grasp_and_release
+    from policy.data import grasp_and_release, grasp_and_release_steps
 
-    grip = np.array([-1, -1, 1, 1, 1, -1, -1], np.float32)  # normalized: closes at step 2, opens at step 5
+    grip = np.array([0, 0, 1, 1, 1, 0, 0], np.float32)  # recorded command: closes at step 2, opens at step 5
     act = np.zeros((7, 10), np.float32)
     act[:, 0], act[:, -1] = np.arange(7), grip
-    aux = grasp_and_release(act)
-    assert aux.tolist() == [2, 0, 0, 5, 0, 0]
-    act[:, -1] = -1  # never closes: both are the last step
-    assert grasp_and_release(act)[[0, 3]].tolist() == [6, 6]
+    assert grasp_and_release_steps(act) == (2, 5)
+    assert grasp_and_release(act, (2, 5)).tolist() == [2, 0, 0, 5, 0, 0]
+    act[:, -1] = 0  # never closes: both are the last step
+    assert grasp_and_release_steps(act) == (6, 6)
 
     cfg = load_policy_config({**TINY, "aux_target_weight": 1.0})
     torch.manual_seed(0)
