@@ -64,12 +64,19 @@ def _draw(panels: list[tuple[str, list[Line], bool]], out_png: str | Path) -> No
         lo, hi = min(ys_all), max(ys_all)
         hi = hi if hi > lo else lo + 1e-12
         draw.rectangle([pad, top, W - 20, bottom], outline="gray")
-        legend = ", ".join(f"{label} {ys[-1]:.4g}" for label, _, ys in lines)
-        draw.text((pad + 5, top + 3), f"{name}{' (log axis)' if log else ''}, last: {legend}", fill="black")
+        colors = [COLORS[j % len(COLORS)] if len(lines) > 1 else COLORS[k % 2] for j in range(len(lines))]
+        # the legend: each series' name and last value in its own colour
+        x = pad + 5
+        for text, color in [(f"{name}{' (log axis)' if log else ''}, last:", "black")] + \
+                [(f"{label} {ys[-1]:.4g}", c) for (label, _, ys), c in zip(lines, colors)]:
+            draw.text((x, top + 3), text, fill=color)
+            x += draw.textlength(text + "  ")
+        for value, y in ((hi, top + 15), (lo, bottom - 10)):  # the y range, in the data's units
+            draw.text((2, y - 5), f"{10 ** value if log else value:.3g}", fill="gray")
         for j, (_, steps, ys) in enumerate(lines):
             pts = [(pad + (s - x0) / (x1 - x0) * (W - 20 - pad), bottom - (tf(y) - lo) / (hi - lo) * (bottom - top - 15))
                    for s, y in zip(steps, ys)]
-            color = COLORS[j % len(COLORS)] if len(lines) > 1 else COLORS[k % 2]
+            color = colors[j]
             if len(pts) > 1:
                 draw.line(pts, fill=color, width=2)
             if len(pts) <= 60:  # dots mark sparse series (validation rows), not the per-log-step curves
