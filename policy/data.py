@@ -10,6 +10,10 @@ chunk the runtime executes ends inside or right after real data.
 Episodes: verified successes only by default (the label the data generator chose: meta["label"]["value"],
 or the synthetic episodes' meta["label"]["success"], else meta["success"]); `include_failures` keeps all.
 
+Actions: as recorded (absolute targets, normalized), or with `action_frame = "tcp"` each window's chunk
+turned relative to the TCP pose at its "now" step before normalizing (policy.action_frame); the stats are
+then fitted on every window's chunk in its own frame.
+
 Language: the root instruction; with `subtask_language_prob` > 0 a sample is instead conditioned on the
 label of the subtask running at "now" (not while recovering). Each distinct string is embedded ONCE with the
 frozen MiniLM encoder; samples carry a row of that table.
