@@ -33,12 +33,30 @@ def rot6d_of(R: np.ndarray) -> np.ndarray:
     return np.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
 
 
+def orthonormalize_rot6d(actions: np.ndarray, rot: slice = slice(3, 9)) -> np.ndarray:
+    """Gram-Schmidt on the two rotation columns of every action (..., Da), in float32: a valid rotation for
+    the robot from a network's raw output (used by the torch reference and by the bundle alike)."""
+    out = np.array(actions, dtype=np.float32, copy=True)
+    a, b = out[..., rot.start:rot.start + 3], out[..., rot.start + 3:rot.stop]
+    x = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-8)
+    b = b - x * (x * b).sum(-1, keepdims=True)
+    y = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-8)
+    out[..., rot] = np.concatenate([x, y], axis=-1)
+    return out
+
+
+def points_to_tcp(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Base-frame points (..., N, 3) -> the frame of `pose` (..., 9): R^T (p - p_tcp), float64."""
+    p0, R0 = np.asarray(pose, np.float64)[..., None, :3], rotations(np.asarray(pose)[..., 3:9])[..., None, :, :]
+    return np.einsum("...ji,...j->...i", R0, np.asarray(points, np.float64) - p0)
+
+
 def to_tcp(actions: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Absolute actions (..., N, Da) -> relative to `pose` (..., 9) = TCP position and rot6d (one per chunk)."""
     a = np.asarray(actions, np.float64)
-    p0, R0 = np.asarray(pose, np.float64)[..., None, :3], rotations(np.asarray(pose)[..., 3:9])[..., None, :, :]
+    R0 = rotations(np.asarray(pose)[..., 3:9])[..., None, :, :]
     out = a.copy()
-    out[..., :3] = np.einsum("...ji,...j->...i", R0, a[..., :3] - p0)  # R0^T (p - p0)
+    out[..., :3] = points_to_tcp(a[..., :3], pose)
     out[..., 3:9] = rot6d_of(np.swapaxes(R0, -1, -2) @ rotations(a[..., 3:9]))
     return out.astype(np.float32)
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from policy.action_frame import FRAMES, from_tcp
+from policy.action_frame import FRAMES, from_tcp, orthonormalize_rot6d
 from policy.onnx_opsets import onnx_opsets
 
 FORMAT = "sudd-policy-bundle"
@@ -347,8 +347,7 @@ class Bundle:
             if self._clip:
                 x0 = x0.clip(-1.0, 1.0)
             x = (math.sqrt(ab_prev) * x0 + math.sqrt(1.0 - ab_prev) * eps).astype(np.float32)
-        a = _orthonormalize(((x[0] - self.stats["action_offset"]) / self.stats["action_scale"]).astype(np.float32),
-                            self._rot)
+        a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
         return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
 
     def info(self) -> dict:
@@ -357,13 +356,3 @@ class Bundle:
                 "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
                 "instructions": len(self.instructions), "data_hash": m.get("data", {}).get("content_hash"),
                 "params": m.get("params"), "bytes": {k: v["bytes"] for k, v in m["files"].items()}}
-
-
-def _orthonormalize(a: np.ndarray, rot: slice) -> np.ndarray:
-    """Gram-Schmidt on each row's rot6d columns (same as policy.sampling.orthonormalize_rot6d)."""
-    c1, c2 = a[:, rot.start:rot.start + 3], a[:, rot.start + 3:rot.stop]
-    x = c1 / np.maximum(np.linalg.norm(c1, axis=-1, keepdims=True), 1e-8)
-    c2 = c2 - x * (x * c2).sum(-1, keepdims=True)
-    y = c2 / np.maximum(np.linalg.norm(c2, axis=-1, keepdims=True), 1e-8)
-    a[:, rot] = np.concatenate([x, y], axis=-1)
-    return a

@@ -43,9 +43,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.schema import rot6d_to_matrix
 from datagen.store import Dataset as EpisodeStore
-from policy.action_frame import relative_windows, to_tcp
+from policy.action_frame import points_to_tcp, relative_windows, to_tcp
 from policy.config import PolicyConfig
 from policy.normalize import Normalizer
 
@@ -153,8 +152,7 @@ def relative_to_tcp(points: np.ndarray, proprio: np.ndarray) -> torch.Tensor:
     """(2, 3) base-frame points [m], one raw proprio row (TCP position, rot6d, ...) -> (6,) the points in
     the TCP frame over AUX_TCP_SCALE. The "tcp" auxiliary target: an offset the wrist camera shows the
     same way in every scene, where an absolute position has to be worked out from the scene camera."""
-    R = rot6d_to_matrix(proprio[3:9])
-    rel = (np.asarray(points, np.float64) - proprio[:3]) @ R  # rows: R^T (p - tcp)
+    rel = points_to_tcp(points, np.asarray(proprio)[:9])
     return torch.from_numpy((rel / AUX_TCP_SCALE).reshape(6).astype(np.float32))
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from policy.action_frame import from_tcp
+from policy.action_frame import from_tcp, orthonormalize_rot6d
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
 from policy.schedule import ddim_schedule, ddim_step
@@ -35,17 +35,6 @@ def ddim_sample(model: DiffusionPolicy, cond: torch.Tensor, noise: torch.Tensor,
         eps = model.unet.denoise(x, torch.full((x.shape[0],), int(t), dtype=torch.int64, device=x.device), film)
         x = ddim_step(x, eps, ab, ab_prev, model.cfg.clip_sample)
     return x
-
-
-def orthonormalize_rot6d(actions: np.ndarray, rot: slice = slice(3, 9)) -> np.ndarray:
-    """Gram-Schmidt on the two rotation columns of every action (..., Da): a valid rotation for the robot."""
-    out = np.array(actions, dtype=np.float32, copy=True)
-    a, b = out[..., rot.start:rot.start + 3], out[..., rot.start + 3:rot.stop]
-    x = a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-8)
-    b = b - x * (x * b).sum(-1, keepdims=True)
-    y = b / np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-8)
-    out[..., rot] = np.concatenate([x, y], axis=-1)
-    return out
 
 
 @torch.no_grad()

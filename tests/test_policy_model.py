@@ -8,7 +8,8 @@ from policy.config import PRESETS, PolicyConfig, config_from_dict, load_policy_c
 from policy.model import (ConditionalUnet1D, DiffusionPolicy, ImageEncoder, ObsEncoder, SpatialSoftmax, count_params,
                           film_dim, prepare_images)
 from policy.normalize import Normalizer
-from policy.sampling import ddim_sample, orthonormalize_rot6d
+from policy.action_frame import orthonormalize_rot6d
+from policy.sampling import ddim_sample
 from policy.schedule import alphas_cumprod, ddim_schedule, ddim_step
 from policy.testing import TINY
 from sim.config import ConfigError
