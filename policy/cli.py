@@ -32,6 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     length.add_argument("--epochs", type=int, help="passes over the samples")
     tr.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
     tr.add_argument("--fresh", action="store_true", help="start over instead of resuming")
+    tr.add_argument("--init-from", type=Path, metavar="RUN", help=(
+        "warm-start a new run from RUN's latest EMA weights and stats (equal tensors copied, a grown "
+        "conditioning input zero-initialized; see policy.warm_start); ignored when resuming"))
     tr.add_argument("--device", default="auto", help="auto|cpu|cuda|cuda:N (default auto)")
     tr.add_argument("--nproc", type=int, default=1, help="processes for DistributedDataParallel (torchrun)")
     tr.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -82,11 +85,12 @@ def _train(args) -> int:
                "--device", args.device]
         cmd += ["--steps", str(args.steps)] if args.steps else ["--epochs", str(args.epochs)]
         cmd += [a for s in args.set for a in ("--set", s)] + (["--fresh"] if args.fresh else [])
+        cmd += ["--init-from", str(args.init_from)] if args.init_from else []
         return subprocess.call(cmd, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     from policy.train import train
 
     summary = train(args.data, args.config, args.out, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
-                    device=args.device, overrides=parse_overrides(args.set))
+                    device=args.device, overrides=parse_overrides(args.set), init_from=args.init_from)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

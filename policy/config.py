@@ -27,6 +27,7 @@ from sim.config import ConfigError, as_dict, load_config, spec
 
 PRESETS = ("small", "full")
 TEXT_DIM = 384  # all-MiniLM-L6-v2
+AUX_DIM = 6  # the aux head's grasp and release points
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,14 @@ class PolicyConfig:
     aux_target_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
         "frame of those targets: base (absolute, normalized like the actions) or tcp (relative to the "
         "gripper at the sample's newest step: what the wrist camera sees directly)")))
+    aux_condition: bool = field(default=False, metadata=spec(doc=(
+        "feed the aux head's grasp and release points to the denoiser as 6 more conditioning inputs, so the "
+        "chunk is drawn towards where the images say the object is (needs aux_target_weight > 0); training "
+        "feeds the true points plus aux_condition_noise, inference the head's prediction (exported in "
+        "obs_encoder.onnx)")))
+    aux_condition_noise: float = field(default=0.1, metadata=spec(0.0, 10.0, doc=(
+        "std of the Gaussian noise on the true points fed in training, in the head's units (tcp frame: "
+        "0.25 m per unit), so the denoiser learns to follow a point about as wrong as the head's")))
     action_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
         "frame the policy learns its chunks in: base (absolute targets) or tcp (relative to the gripper at "
         "the chunk's newest observation, see policy.action_frame); the bundle always emits absolute targets")))
@@ -120,6 +129,9 @@ class PolicyConfig:
         if self.action_frame == "tcp" and self.aux_target_weight > 0 and self.aux_target_frame != "tcp":
             raise ConfigError("action_frame 'tcp' needs aux_target_frame 'tcp' when aux_target_weight > 0 (a "
                               "'base' aux target is read in the absolute actions' normalized units)")
+        if self.aux_condition and self.aux_target_weight <= 0:
+            raise ConfigError("aux_condition needs aux_target_weight > 0 (the aux head that predicts the points "
+                              "it feeds to the denoiser is trained only then)")
         if len(set(self.cameras)) != len(self.cameras) or not self.cameras:
             raise ConfigError(f"cameras {self.cameras} must be distinct and non-empty")
         if self.inference_steps > self.num_train_timesteps:
@@ -130,9 +142,10 @@ class PolicyConfig:
 
     @property
     def global_cond_dim(self) -> int:
-        """Per observation step: every camera's features + proprio features; the text feature once."""
+        """Per observation step: every camera's features + proprio features; the text feature once; last,
+        with aux_condition, the aux head's AUX_DIM points."""
         per_step = len(self.cameras) * self.image_feature_dim + self.proprio_feature_dim
-        return self.obs_horizon * per_step + self.text_feature_dim
+        return self.obs_horizon * per_step + self.text_feature_dim + (AUX_DIM if self.aux_condition else 0)
 
     def to_dict(self) -> dict:
         return as_dict(self)

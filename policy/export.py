@@ -47,6 +47,7 @@ from policy.model import DiffusionPolicy, count_params, film_dim, prepare_images
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
+from policy.warm_start import read_record
 
 FORMAT, FORMAT_VERSION, OPSET = "sudd-policy-bundle", 1, 17
 
@@ -149,6 +150,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
 
     run_dir = Path(run_dir)
     model, cfg, training = load_run_model(run_dir, checkpoint, ema)
+    warm = read_record(run_dir)
+    if warm is not None:
+        training["warm_start"] = warm
     normalizer = Normalizer.load(run_dir / "stats.npz")
     data_info = json.loads((run_dir / "dataset.json").read_text())
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights)
@@ -218,7 +222,8 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),
-            "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond),
+            "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond)
+                       + (count_params(model.aux_head) if cfg.aux_condition else 0),
                        "denoiser": count_params(model.unet) - count_params(model.unet.film_cond),
                        "policy_total": count_params(model), "text_encoder": text_info["params"]},
             "weights": weights, "text_encoder": text_info,

@@ -9,7 +9,10 @@ Shapes (B batch, To obs horizon, Tp prediction horizon, Da action dim, Dp propri
     DiffusionPolicy  .encode(...) -> (B, G); .forward(noisy, t, cond) -> (B, Tp, Da); .loss(...) -> scalar
 
 G = To * (cameras * image_feature_dim + proprio_feature_dim) + text_feature_dim: every observation step's
-features are concatenated (the model sees motion), the instruction once (it does not change within a window).
+features are concatenated (the model sees motion), the instruction once (it does not change within a window);
+with `aux_condition` (+ AUX_DIM) the aux head's grasp and release points close the vector: the object's
+location read out explicitly (grounding probe, stop 11: the image features place the named object better than
+the chunks followed it), which a "go there" denoiser uses more easily than 400-odd raw features.
 
 After Diffusion Policy (Chi et al. 2023): one ResNet per camera (the views differ too much to share
 filters cheaply), GroupNorm instead of BatchNorm (batch statistics break under EMA weight averaging and
@@ -29,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policy.config import TEXT_DIM, PolicyConfig
+from policy.config import AUX_DIM, TEXT_DIM, PolicyConfig
 
 
 def _gn(ch: int) -> nn.GroupNorm:
@@ -252,29 +255,42 @@ class DiffusionPolicy(nn.Module):
         self.unet = ConditionalUnet1D(cfg.action_dim, cfg.global_cond_dim, cfg.step_embed_dim, cfg.down_dims,
                                       cfg.kernel_size, cfg.group_norm_groups)
         self.aux_head = None
-        if cfg.aux_target_weight > 0:  # training only: not part of the exported graphs
+        if cfg.aux_target_weight > 0:  # exported (in obs_encoder) only with aux_condition
             width = len(cfg.cameras) * cfg.image_feature_dim
-            self.aux_head = nn.Sequential(nn.Linear(width, 128), nn.Mish(), nn.Linear(128, 6))
+            self.aux_head = nn.Sequential(nn.Linear(width, 128), nn.Mish(), nn.Linear(128, AUX_DIM))
         ab = torch.tensor(alphas_cumprod(cfg.num_train_timesteps, cfg.beta_schedule), dtype=torch.float32)
         self.register_buffer("alphas_cumprod", ab, persistent=False)
 
     def encode(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
-        return self.obs_encoder(images, proprio, text)
+        """The denoiser's global cond (B, G): the observation features, with aux_condition followed by the aux
+        head's predicted points (what inference has; training feeds the true ones, see `loss`)."""
+        features = self.obs_encoder(images, proprio, text)
+        if not self.cfg.aux_condition:
+            return features
+        return torch.cat([features, self.aux_head(self.image_features(features))], dim=1)
 
     def forward(self, noisy: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         return self.unet(noisy, timestep, cond)
 
-    def loss(self, batch: dict, noise: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
+    def loss(self, batch: dict, noise: torch.Tensor, timesteps: torch.Tensor,
+             aux_noise: torch.Tensor | None = None) -> torch.Tensor:
         """MSE between the true and predicted noise of x_t = sqrt(ab_t) a0 + sqrt(1 - ab_t) eps.
 
         batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
         (all normalized), aux (B, 6) (only with aux_target_weight, see policy.data.grasp_and_release);
         noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
+        aux_noise (B, 6) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
+        aux_condition_noise times this (teacher forcing: it learns to follow the points from the first step,
+        while the head's own predictions are still poor); None = the true points.
         """
-        cond = self.encode(batch["images"], batch["proprio"], batch["text"])
+        features = self.obs_encoder(batch["images"], batch["proprio"], batch["text"])
+        cond = features
+        if self.cfg.aux_condition:
+            fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
+            cond = torch.cat([features, fed], dim=1)
         loss = F.mse_loss(self.predict_added_noise(cond, batch["action"], noise, timesteps), noise)
         if self.aux_head is not None:
-            loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_head(self.image_features(cond)),
+            loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_head(self.image_features(features)),
                                                                   batch["aux"])
         return loss
 

@@ -34,7 +34,8 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Sampler
 from torch.utils.data._utils.collate import default_collate
 
-from policy.config import PolicyConfig, config_from_dict, load_policy_config
+from policy import warm_start
+from policy.config import AUX_DIM, PolicyConfig, config_from_dict, load_policy_config
 from policy.data import PolicyDataset, finish_images, to_device
 from policy.model import DiffusionPolicy, count_params
 from policy.normalize import Normalizer
@@ -174,13 +175,14 @@ def _dist_setup(device: str) -> tuple[int, int, torch.device]:
 def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "small", out_run_dir: str | Path = "runs/policy",
           steps: int | None = None, epochs: int | None = None, resume: bool = True, device: str = "auto",
           progress: bool = True, stop_at: int | None = None, embedder=None, overrides: dict | None = None,
-          threads: int | None = None) -> dict:
+          threads: int | None = None, init_from: str | Path | None = None) -> dict:
     """Train (or resume) a policy run; returns the summary (also written to RUN/summary.json).
 
     steps or epochs sets the schedule's length (an epoch = one pass over the samples by all processes).
     stop_at: leave after that step with a checkpoint, as a preemption would (resume continues the same run).
     threads: torch intra-op threads (None: torch's default). On a shared 2-core machine 1 is faster for
     small models: two spinning OpenMP threads stall whenever the OS deschedules one of them.
+    init_from: a trained run to warm-start a fresh run from (policy.warm_start); ignored when resuming.
     """
     if threads:
         torch.set_num_threads(threads)
@@ -200,6 +202,8 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
         if recorded != cfg:
             raise ValueError(f"{run_dir} was started with another config; resume=False starts it afresh")
         normalizer = Normalizer.load(run_dir / "stats.npz")
+    elif init_from is not None:
+        normalizer = warm_start.source_normalizer(init_from)
     split = "train" if cfg.val_fraction > 0 else None
     ds = PolicyDataset(data_dir, cfg, train=True, normalizer=normalizer, embedder=embedder, uint8_images=True,
                        split=split)
@@ -218,7 +222,9 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     batches = StepBatches(len(ds), cfg.batch_size, cfg.seed, rank, world, 0, 0)
     total = steps if steps is not None else (epochs or 1) * batches.per_epoch
 
-    model = DiffusionPolicy(cfg).to(dev)
+    model = DiffusionPolicy(cfg)
+    warm = warm_start.load_into(model, init_from) if ckpt is None and init_from is not None else None
+    model = model.to(dev)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, cfg.warmup_steps, total))
@@ -239,6 +245,8 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
             ds.normalizer.save(run_dir / "stats.npz")
             (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
+            if warm is not None:
+                warm_start.write_record(run_dir, warm)
         _truncate_metrics(run_dir / "metrics.jsonl", start)
 
     batches.start, batches.stop = start, total if stop_at is None else min(total, stop_at)
@@ -255,8 +263,9 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             g = torch.Generator().manual_seed(step_seed(cfg.seed, k, rank, 1))
             noise = torch.randn(batch["action"].shape, generator=g).to(dev)
             t = torch.randint(0, cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(dev)
+            aux_noise = torch.randn(noise.shape[0], AUX_DIM, generator=g).to(dev) if cfg.aux_condition else None
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
-                loss = net(batch, noise, t)
+                loss = net(batch, noise, t, aux_noise)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip > 0:
@@ -315,8 +324,8 @@ class _Loss(torch.nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, batch, noise, t):
-        return self.policy.loss(batch, noise, t)
+    def forward(self, batch, noise, t, aux_noise=None):
+        return self.policy.loss(batch, noise, t, aux_noise)
 
 
 def _mean_over_ranks(x: float, dev, world: int) -> float:
@@ -355,6 +364,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--epochs", type=int, default=None)
     p.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="override a config field")
     p.add_argument("--fresh", action="store_true", help="do not resume; start the run over")
+    p.add_argument("--init-from", default=None, help="warm-start a new run from this run (policy.warm_start)")
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -362,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
 
     overrides = parse_overrides(args.set)
     summary = train(args.data, args.config, args.run, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
-                    device=args.device, progress=not args.no_progress, overrides=overrides)
+                    device=args.device, progress=not args.no_progress, overrides=overrides, init_from=args.init_from)
     if int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(summary, indent=2))
     if dist.is_initialized():

@@ -1,0 +1,129 @@
+"""aux_condition (the aux head's points fed to the denoiser) and warm-starting a run from another."""
+
+import json
+import os
+import tempfile
+
+import numpy as np
+import pytest
+import torch
+
+from policy.config import AUX_DIM, load_policy_config
+from policy.model import DiffusionPolicy
+from policy.testing import TINY, hash_embedder, synthetic_dataset
+from policy.train import train
+from sim.config import ConfigError
+
+AUX = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp"}
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    return synthetic_dataset(tmp_path_factory.mktemp("auxc") / "data", episodes=4, smooth=True)
+
+
+@pytest.fixture(scope="module")
+def source_run(data_dir, tmp_path_factory):
+    run = tmp_path_factory.mktemp("auxc") / "source"
+    train(data_dir, dict(TINY), run, steps=4, embedder=hash_embedder, progress=False, threads=1, overrides=AUX)
+    return run
+
+
+def _batch(cfg, B=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    h, w = cfg.crop_size
+    return {"images": {c: torch.rand(B, cfg.obs_horizon, 3, h, w, generator=g) for c in cfg.cameras},
+            "proprio": torch.randn(B, cfg.obs_horizon, cfg.proprio_dim, generator=g),
+            "text": torch.randn(B, 384, generator=g), "action": torch.randn(B, cfg.pred_horizon, cfg.action_dim,
+                                                                             generator=g),
+            "aux": torch.randn(B, AUX_DIM, generator=g)}
+
+
+def test_aux_condition_needs_the_aux_head():
+    with pytest.raises(ConfigError, match="aux_condition needs aux_target_weight"):
+        load_policy_config(TINY, {"aux_condition": True})
+    with pytest.raises(ConfigError, match="aux_condition_noise"):
+        load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": -1.0})
+
+
+def test_inference_cond_ends_with_the_heads_prediction():
+    plain = load_policy_config(TINY, AUX)
+    cfg = load_policy_config(TINY, {**AUX, "aux_condition": True})
+    assert cfg.global_cond_dim == plain.global_cond_dim + AUX_DIM
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    b = _batch(cfg)
+    with torch.no_grad():
+        cond = model.encode(b["images"], b["proprio"], b["text"])
+        features = model.obs_encoder(b["images"], b["proprio"], b["text"])
+        assert cond.shape == (3, cfg.global_cond_dim)
+        torch.testing.assert_close(cond[:, :-AUX_DIM], features)
+        torch.testing.assert_close(cond[:, -AUX_DIM:], model.aux_head(model.image_features(features)))
+
+
+def test_training_feeds_the_true_points_plus_scaled_noise():
+    cfg = load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": 0.5})
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    b = _batch(cfg)
+    noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
+    z = torch.randn(3, AUX_DIM)
+    mse = torch.nn.functional.mse_loss
+    with torch.no_grad():
+        features = model.obs_encoder(b["images"], b["proprio"], b["text"])
+        head = model.aux_head(model.image_features(features))
+        fed = torch.cat([features, b["aux"] + 0.5 * z], dim=1)
+        want = mse(model.predict_added_noise(fed, b["action"], noise, t), noise) + mse(head, b["aux"])
+        torch.testing.assert_close(model.loss(b, noise, t, z), want)
+        moved = dict(b, aux=b["aux"] + 1.0)
+        denoiser_term = [float(model.loss(x, noise, t, z) - mse(head, x["aux"])) for x in (b, moved)]
+        assert abs(denoiser_term[0] - denoiser_term[1]) > 1e-6  # the denoiser sees the fed points
+
+
+def test_warm_start_reproduces_the_source_then_records_it(data_dir, source_run, tmp_path):
+    from policy import warm_start
+    from policy.train import load_run_model
+
+    source, _, _ = load_run_model(source_run)
+    cfg = load_policy_config(TINY, {**AUX, "aux_condition": True})
+    model = DiffusionPolicy(cfg).eval()
+    record = warm_start.load_into(model, source_run)
+    assert record["step"] == 4 and record["grown"] == [
+        f"unet.film_cond.1.weight ({model.unet.film_dim}, {cfg.global_cond_dim - AUX_DIM}) -> "
+        f"({model.unet.film_dim}, {cfg.global_cond_dim})"]
+    b = _batch(cfg)
+    x, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([1, 40, 99])
+    with torch.no_grad():
+        old = source(x, t, source.encode(b["images"], b["proprio"], b["text"]))
+        new = model(x, t, model.encode(b["images"], b["proprio"], b["text"]))
+    torch.testing.assert_close(new, old)  # zero columns: the added inputs change nothing yet
+
+    other = DiffusionPolicy(load_policy_config(TINY, {**AUX, "down_dims": [8, 16]}))
+    with pytest.raises(ValueError, match="only a Linear's inputs may grow"):
+        warm_start.load_into(other, source_run)
+
+    run = tmp_path / "warm"
+    train(data_dir, dict(TINY), run, steps=2, embedder=hash_embedder, progress=False, threads=1,
+          overrides={**AUX, "aux_condition": True}, init_from=source_run)
+    assert json.loads((run / "warm_start.json").read_text())["checkpoint"] == record["checkpoint"]
+    assert (run / "stats.npz").read_bytes() == (source_run / "stats.npz").read_bytes()
+
+
+def test_an_aux_conditioned_bundle_exports_with_parity(data_dir, source_run, tmp_path):
+    from policy.bundle import Bundle
+    from policy.export import export
+
+    run = tmp_path / "run"
+    train(data_dir, dict(TINY), run, steps=2, embedder=hash_embedder, progress=False, threads=1,
+          overrides={**AUX, "aux_condition": True}, init_from=source_run)
+    cache = os.path.join(tempfile.gettempdir(), f"sudd-test-cache-{os.getuid()}")
+    m = export(run, tmp_path / "bundle", cache_dir=cache)
+    assert m["parity"]["chunk_max_abs_err"] <= 1e-4 and m["parity"]["step_max_abs_err"] <= 1e-4
+    assert m["dims"]["global_cond"] == load_policy_config(TINY, AUX).global_cond_dim + AUX_DIM
+    assert m["training"]["warm_start"]["source"] == str(source_run)
+    b = Bundle.load(tmp_path / "bundle")
+    rng = np.random.default_rng(0)
+    images = {c: rng.integers(0, 255, (2, 32, 32, 3), dtype=np.uint8) for c in b.cameras}
+    chunk = b.act(images, np.zeros((2, 16), np.float32) + [0.4, 0.1, 0.3, 1, 0, 0, 0, -1, 0, 0, 0, 0, 0, 0, 0, 0],
+                  b.embed("do pick_place"))
+    assert chunk.shape == (b.pred_horizon, b.action_dim) and np.isfinite(chunk).all()
