@@ -85,6 +85,12 @@ class Recorder:
         data.validate()
         return data
 
+    def observations(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The samples' camera images {camera: (T, H, W, 3)} and proprioception (T, PROPRIO_DIM) so far, for
+        callers that record views rather than episodes (datagen.views)."""
+        images = {c: np.stack(v) for c, v in self._images.items()}
+        return images, np.asarray(self._proprio, dtype=np.float32).reshape(-1, PROPRIO_DIM)
+
     def close(self) -> None:
         if self._cams is not None:
             self._cams.close()

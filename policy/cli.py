@@ -40,6 +40,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--json", action="store_true", help="print the summary as JSON")
     tr.set_defaults(func=_train)
 
+    pre = sub.add_parser(
+        "pretrain", help="pretrain the image encoders and aux head on rendered views (sudd views)",
+        description="Train the policy's image encoders and aux head to locate the named object on rendered\n"
+                    "views (policy/pretrain.py), validating on the episode dataset's held-out episodes; then\n"
+                    "start a policy run from it with `sudd train --init-from RUN`. Use the policy's config.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example:\n  sudd pretrain out/views --data out/data --out runs/pre --config "
+               "policy/configs/demo_pick_place.toml --steps 3000\n"
+               "  sudd train out/data --out runs/pp --config policy/configs/demo_pick_place.toml --steps 3000 "
+               "--init-from runs/pre")
+    pre.add_argument("views", type=Path, help="views directory (sudd views --out)")
+    pre.add_argument("--data", type=Path, required=True, help="the episode dataset the policy will train on")
+    pre.add_argument("--out", type=Path, required=True, help="run directory (written afresh)")
+    pre.add_argument("--config", default="small", help="the policy's preset or TOML file (default small)")
+    pre.add_argument("--steps", type=int, required=True, help="optimizer steps")
+    pre.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
+    pre.add_argument("--json", action="store_true", help="print the summary as JSON")
+    pre.set_defaults(func=_pretrain)
+
     ex = sub.add_parser(
         "export", help="export a training run to a policy bundle (ONNX + manifest), verified against torch",
         description="Write a self-contained bundle directory (see policy/export.py) from a run's latest\n"
@@ -96,6 +115,18 @@ def _train(args) -> int:
     else:
         print(f"run {summary['run_dir']}: step {summary['step']}/{summary['total_steps']}, "
               f"loss {summary['final_loss']:.4f}, checkpoint {summary.get('checkpoint')}, plot {summary['plot']}")
+    return 0
+
+
+def _pretrain(args) -> int:
+    from policy.pretrain import pretrain
+
+    summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set))
+    val = summary["validation"] or {}
+    print(json.dumps(summary, indent=2) if args.json else
+          f"run {summary['run_dir']}: {summary['views']} views of {summary['scenes']} scenes, loss "
+          f"{summary['final_loss']:.4f}, held-out grasp error {val.get('val_grasp_cm', float('nan')):.1f} cm; "
+          f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
     return 0
 
 

@@ -21,7 +21,7 @@ BENCH_AREAS = {
 
 def build_parser() -> argparse.ArgumentParser:
     from datagen import cli as data_cli
-    from datagen import generate_cli
+    from datagen import generate_cli, views_cli
     from policy import cli as policy_cli
     from runtime import eval_cli, run_cli
     from sim import cli as sim_cli
@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sim_cli.register(sub)
     generate_cli.register(sub)
+    views_cli.register(sub)
     data_cli.register(sub)
     policy_cli.register(sub)
     run_cli.register(sub)

@@ -1,0 +1,55 @@
+"""`sudd views`: render labelled views of heavy-DR pick_place scenes (no physics, no planning) to pretrain the
+policy's image encoder to find the named object (see datagen/views.py, then `sudd pretrain`).
+
+The labels' offsets (where an episode closes and opens the gripper, relative to the object and the bin) are
+measured on recorded episodes (--offsets-from). Shards of 50 scenes land as they finish; re-running the same
+command skips the shards already there. Hold out the same colours as the episode data, so the held-out
+evaluation stays held out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    v = sub.add_parser(
+        "views", help="render labelled views of DR scenes for encoder pretraining (sudd pretrain)",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example:\n  sudd views --out out/views --scenes 3000 --seed-offset 200000 --offsets-from out/data "
+               "--holdout-color purple")
+    v.add_argument("--out", type=Path, required=True, help="views directory (created; resumed if present)")
+    v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
+    v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
+    v.add_argument("--seed-offset", type=int, default=200000,
+                   help="first seed (default 200000); keep it away from training and evaluation seeds")
+    v.add_argument("--offsets-from", type=Path, required=True, metavar="DATA",
+                   help="an episode dataset with successful pick_place episodes to measure the label offsets on")
+    v.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
+                   help="never use this object colour (repeatable; as for sudd datagen)")
+    v.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
+                   help="never use this object shape (repeatable)")
+    v.add_argument("--json", action="store_true", help="print the summary as JSON")
+    v.set_defaults(func=_views)
+
+
+def _views(args) -> int:
+    from datagen.views import generate, measure_offsets
+    from sim.config import load_config
+    from sim.tasks import Holdout
+
+    if args.scenes < 1 or args.views < 1:
+        raise ValueError(f"--scenes and --views must be >= 1 (got {args.scenes}, {args.views})")
+    holdout = load_config(Holdout, {"colors": args.holdout_color, "shapes": args.holdout_shape})
+    offsets = measure_offsets(args.offsets_from)
+    shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
+                      holdout)
+    summary = {"out": str(args.out), "shards": len(shards), "scenes": args.scenes, "views_per_scene": args.views,
+               "offsets_m": {k: [round(float(x), 4) for x in offsets[k]] for k in ("grasp", "release")},
+               "offsets_episodes": int(offsets["episodes"])}
+    print(json.dumps(summary, indent=2) if args.json else
+          f"{args.scenes} scenes x {args.views} views in {len(shards)} shards -> {args.out}; next: "
+          f"sudd pretrain {args.out} --data {args.offsets_from} --out runs/pretrain --steps 3000")
+    return 0

@@ -1,0 +1,81 @@
+"""Rendered views for encoder pretraining (datagen.views) and the pretraining itself (policy.pretrain)."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.views import generate, load, sample_pose, scene_views
+from sim.build import build_episode
+from sim.state import StateView
+
+OFFSETS = {"grasp": np.array([0.0, 0.0, 0.01]), "release": np.array([0.0, 0.0, 0.06])}
+SIZE = (32, 32)
+
+
+@pytest.fixture(scope="module")
+def views_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("views")
+    generate(out, range(300, 302), 3, OFFSETS, progress=False, image_size=SIZE)
+    return out
+
+
+def test_a_scene_view_is_labelled_with_the_named_objects_and_bins_positions():
+    v = scene_views(300, 3, OFFSETS, image_size=SIZE)
+    ep = build_episode("pick_place", 300, "heavy", "fast")
+    state = StateView(ep.world)
+    want = [state.position(ep.instance.params["target"]) + OFFSETS["grasp"],
+            state.position(ep.instance.params["bin"]) + OFFSETS["release"]]
+    np.testing.assert_allclose(v["points"], np.broadcast_to(want, (3, 2, 3)), atol=1e-6)
+    assert v["instruction"] == [ep.instruction] * 3 and v["scene"].shape == (3, 32, 32, 3)
+    np.testing.assert_allclose(v["proprio"][0, :3], ep.world.tcp_pose()[:3, 3], atol=1e-6)  # first view: home
+    assert np.linalg.norm(v["proprio"][1:, :3] - v["proprio"][0, :3], axis=1).min() > 0.01  # the others moved
+    again = scene_views(300, 3, OFFSETS, image_size=SIZE)
+    assert all(np.array_equal(v[k], again[k]) for k in ("scene", "wrist", "proprio"))
+
+
+def test_sampled_poses_head_for_the_object_and_point_down():
+    rng = np.random.default_rng(0)
+    home = np.eye(4)
+    home[:3, :3], home[:3, 3] = np.diag([1.0, -1.0, -1.0]), [-0.13, 0.49, 0.33]
+    grasp = np.array([0.1, 0.35, 0.03])
+    poses = [sample_pose(home, grasp, 0.4, rng) for _ in range(300)]
+    p = np.array([T[:3, 3] for T in poses])
+    assert p[:, 2].min() >= grasp[2]
+    assert np.median(np.linalg.norm(p - grasp, axis=1)) < np.linalg.norm(home[:3, 3] - grasp)
+    assert min(T[2, 2] for T in poses) < -0.95  # the tool z axis stays near straight down
+
+
+def test_shards_are_written_whole_and_a_rerun_keeps_them(views_dir):
+    shards = sorted(views_dir.glob("*.npz"))
+    assert [p.name for p in shards] == ["views_00000300.npz"]
+    before = shards[0].stat().st_mtime_ns
+    generate(views_dir, range(300, 302), 3, OFFSETS, progress=False, image_size=SIZE)
+    assert shards[0].stat().st_mtime_ns == before
+    v = load(views_dir)
+    assert len(v["proprio"]) == 6 and sorted(set(v["seed"].tolist())) == [300, 301]
+
+
+def test_pretraining_fits_the_views_and_a_policy_run_starts_from_it(views_dir, tmp_path):
+    from policy import warm_start
+    from policy.config import load_policy_config
+    from policy.model import DiffusionPolicy
+    from policy.pretrain import pretrain
+    from policy.testing import TINY, hash_embedder, synthetic_dataset
+
+    data = synthetic_dataset(tmp_path / "data", episodes=4, smooth=True)
+    over = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "lr": 3e-3,
+            "warmup_steps": 1, "log_every": 5, "color_jitter": 0.0}
+    s = pretrain(views_dir, data, dict(TINY), tmp_path / "pre", 60, over, threads=1, progress=False,
+                 embedder=hash_embedder)
+    rows = [json.loads(x) for x in (tmp_path / "pre" / "metrics.jsonl").read_text().splitlines()]
+    losses = [r["loss"] for r in rows if "loss" in r]
+    assert s["views"] == 6 and losses[-1] < 0.5 * losses[0]
+    model = DiffusionPolicy(load_policy_config(TINY, {**over, "aux_condition": True}))
+    warm_start.load_into(model, tmp_path / "pre")
+    saved = torch.load(s["checkpoint"], weights_only=False)["ema"]["model"]
+    torch.testing.assert_close(model.aux_head[0].weight, saved["aux_head.0.weight"])
+    with pytest.raises(ValueError, match="views are"):
+        pretrain(views_dir, data, dict(TINY, image_size=[64, 64], crop_size=[56, 56]), tmp_path / "bad", 1, over,
+                 threads=1, progress=False, embedder=hash_embedder)
