@@ -88,10 +88,10 @@ class PolicyConfig:
     aux_condition_noise: float = field(default=0.1, metadata=spec(0.0, 10.0, doc=(
         "std of the Gaussian noise on the true points fed in training, in the head's units (tcp frame: "
         "0.25 m per unit), so the denoiser learns to follow a point about as wrong as the head's")))
-    freeze_image_encoders: bool = field(default=False, metadata=spec(doc=(
-        "keep the per-camera image encoders as the warm start left them (sudd train --init-from a `sudd "
+    freeze_pretrained: bool = field(default=False, metadata=spec(doc=(
+        "keep the image encoders and the aux head as the warm start left them (sudd train --init-from a `sudd "
         "pretrain` run: what thousands of rendered scenes taught them), so a few hundred episodes cannot turn "
-        "them into a lookup of those scenes; everything else trains, and a CPU step skips their backward")))
+        "them into a lookup of those scenes; the rest trains, and a CPU step skips the encoders' backward")))
     action_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
         "frame the policy learns its chunks in: base (absolute targets) or tcp (relative to the gripper at "
         "the chunk's newest observation, see policy.action_frame); the bundle always emits absolute targets")))

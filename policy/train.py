@@ -224,11 +224,12 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
 
     model = DiffusionPolicy(cfg)
     warm = warm_start.load_into(model, init_from) if ckpt is None and init_from is not None else None
-    if cfg.freeze_image_encoders:
+    if cfg.freeze_pretrained:
         if ckpt is None and init_from is None:
-            raise ValueError("freeze_image_encoders keeps the image encoders as initialized: start the run with "
-                             "init_from (--init-from RUN, e.g. a `sudd pretrain` run), or leave it false")
-        model.obs_encoder.images.requires_grad_(False)
+            raise ValueError("freeze_pretrained keeps the image encoders and aux head as initialized: start the "
+                             "run with init_from (--init-from RUN, a `sudd pretrain` run), or leave it false")
+        for name in warm_start.PRETRAINED:
+            model.get_submodule(name).requires_grad_(False)
     model = model.to(dev)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)

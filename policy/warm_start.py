@@ -6,6 +6,10 @@ input grew at the end (the denoiser's FiLM conditioning, when the global cond ga
 columns and zeros for the new ones, so at step 0 the new model computes exactly what the source did and
 training alone decides how much the new inputs matter. Any other difference is refused, naming the tensor.
 
+From a `sudd pretrain` run (its dataset.json says "pretrain") only the PRETRAINED modules are taken,
+whatever the rest's shapes: the rest of such a run never trained, so a policy with another observation
+horizon can start from it.
+
 The new run also takes the source's normalization stats, so the copied weights see the inputs they were
 trained on; the source, its checkpoint and what grew are recorded in RUN/warm_start.json (and the bundle's
 manifest, under training).
@@ -22,6 +26,8 @@ import torch
 from policy.normalize import Normalizer
 
 RECORD = "warm_start.json"
+# what `sudd pretrain` trains: from a pretrain run only these are taken (its denoiser and projections are untrained)
+PRETRAINED = ("obs_encoder.images", "aux_head")
 
 
 def source_checkpoint(source_run: str | Path) -> Path:
@@ -43,6 +49,9 @@ def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
     path = source_checkpoint(source_run)
     state = torch.load(path, map_location="cpu", weights_only=False)
     old = state["ema"]["model"]
+    info = Path(source_run) / "dataset.json"
+    if info.is_file() and "pretrain" in json.loads(info.read_text()):
+        old = {k: v for k, v in old.items() if k.startswith(tuple(p + "." for p in PRETRAINED))}
     new = model.state_dict()
     extra = sorted(set(old) - set(new))
     if extra:

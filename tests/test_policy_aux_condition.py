@@ -129,11 +129,11 @@ def test_an_aux_conditioned_bundle_exports_with_parity(data_dir, source_run, tmp
     assert chunk.shape == (b.pred_horizon, b.action_dim) and np.isfinite(chunk).all()
 
 
-def test_frozen_image_encoders_keep_the_warm_start_and_the_rest_trains(data_dir, source_run, tmp_path):
+def test_frozen_pretrained_parts_keep_the_warm_start_and_the_rest_trains(data_dir, source_run, tmp_path):
     from policy.train import load_run_model
 
-    over = {**AUX, "aux_condition": True, "freeze_image_encoders": True}
-    with pytest.raises(ValueError, match="freeze_image_encoders keeps the image encoders"):
+    over = {**AUX, "aux_condition": True, "freeze_pretrained": True}
+    with pytest.raises(ValueError, match="freeze_pretrained keeps the image encoders"):
         train(data_dir, dict(TINY), tmp_path / "cold", steps=1, embedder=hash_embedder, progress=False, threads=1,
               overrides=over)
     train(data_dir, dict(TINY), tmp_path / "run", steps=3, embedder=hash_embedder, progress=False, threads=1,
@@ -141,6 +141,7 @@ def test_frozen_image_encoders_keep_the_warm_start_and_the_rest_trains(data_dir,
     before, _, _ = load_run_model(source_run)
     after = torch.load(sorted((tmp_path / "run" / "checkpoints").glob("*.pt"))[-1], weights_only=False)["model"]
     for name, p in before.state_dict().items():
-        if name.startswith("obs_encoder.images."):
+        if name.startswith(("obs_encoder.images.", "aux_head.")):
             torch.testing.assert_close(after[name], p)
-    assert not torch.equal(after["aux_head.0.weight"], before.state_dict()["aux_head.0.weight"])
+    assert not torch.equal(after["unet.film_cond.1.weight"][:, :-AUX_DIM],
+                           before.state_dict()["unet.film_cond.1.weight"])

@@ -76,6 +76,13 @@ def test_pretraining_fits_the_views_and_a_policy_run_starts_from_it(views_dir, t
     warm_start.load_into(model, tmp_path / "pre")
     saved = torch.load(s["checkpoint"], weights_only=False)["ema"]["model"]
     torch.testing.assert_close(model.aux_head[0].weight, saved["aux_head.0.weight"])
+    # only the pretrained parts come over, so another observation horizon (another cond width) starts from it
+    short = DiffusionPolicy(load_policy_config(TINY, {**over, "obs_horizon": 1}))
+    record = warm_start.load_into(short, tmp_path / "pre")
+    name = "obs_encoder.images.scene.stem.0.weight"
+    torch.testing.assert_close(short.state_dict()[name], saved[name])
+    assert not record["grown"] and all(k.startswith(("unet.", "obs_encoder.proprio", "obs_encoder.text"))
+                                       for k in record["new"])
     with pytest.raises(ValueError, match="views are"):
         pretrain(views_dir, data, dict(TINY, image_size=[64, 64], crop_size=[56, 56]), tmp_path / "bad", 1, over,
                  threads=1, progress=False, embedder=hash_embedder)
