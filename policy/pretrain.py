@@ -33,6 +33,7 @@ from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
 from policy.train import EMA, _save, lr_factor
 from policy.validate import Validator
+from policy.warm_start import PRETRAINED
 
 
 class Views:
@@ -101,10 +102,14 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
-    params = list(model.obs_encoder.parameters()) + list(model.aux_head.parameters())
+    params = [p for name in PRETRAINED for p in model.get_submodule(name).parameters()]
     opt = torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, cfg.warmup_steps, steps))
     run_dir = Path(out_run_dir)
+    if any(run_dir.glob("checkpoints/*.pt")) and "pretrain" not in json.loads((run_dir / "dataset.json").read_text()):
+        raise FileExistsError(f"{run_dir} holds a policy run; pretraining would overwrite it: pick another --out")
+    for old in run_dir.glob("checkpoints/*.pt"):  # a pretrain run is written afresh
+        old.unlink()
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     fit.normalizer.save(run_dir / "stats.npz")
@@ -138,8 +143,9 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     checkpoint = _save(run_dir, steps, steps, model, ema, opt, sched, cfg)
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
     checks = [r for r in rows if "val_loss" in r]
+    losses = [r["loss"] for r in rows if "loss" in r]
     summary = {"run_dir": str(run_dir), "step": steps, "views": len(views), "scenes": views.scenes,
-               "params": count_params(model), "checkpoint": str(checkpoint), "final_loss": next((r["loss"] for r in reversed(rows) if "loss" in r), None),
+               "params": count_params(model), "checkpoint": str(checkpoint), "final_loss": losses[-1],
                "validation": checks[-1] if checks else None,
                "plot": str(plot_metrics(metrics, run_dir / "metrics.png"))}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))

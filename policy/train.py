@@ -232,7 +232,8 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             model.get_submodule(name).requires_grad_(False)
     model = model.to(dev)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
-    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=cfg.betas,
+                            weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, cfg.warmup_steps, total))
     start = 0
     if ckpt is not None:

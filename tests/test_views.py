@@ -83,6 +83,12 @@ def test_pretraining_fits_the_views_and_a_policy_run_starts_from_it(views_dir, t
     torch.testing.assert_close(short.state_dict()[name], saved[name])
     assert not record["grown"] and all(k.startswith(("unet.", "obs_encoder.proprio", "obs_encoder.text"))
                                        for k in record["new"])
+    from policy.train import train
+
+    train(data, dict(TINY), tmp_path / "policy", steps=1, embedder=hash_embedder, progress=False, threads=1)
+    with pytest.raises(FileExistsError, match="holds a policy run"):
+        pretrain(views_dir, data, dict(TINY), tmp_path / "policy", 1, over, threads=1, progress=False,
+                 embedder=hash_embedder)
     with pytest.raises(ValueError, match="views are"):
         pretrain(views_dir, data, dict(TINY, image_size=[64, 64], crop_size=[56, 56]), tmp_path / "bad", 1, over,
                  threads=1, progress=False, embedder=hash_embedder)
