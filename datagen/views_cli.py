@@ -51,5 +51,6 @@ def _views(args) -> int:
                "offsets_episodes": int(offsets["episodes"])}
     print(json.dumps(summary, indent=2) if args.json else
           f"{args.scenes} scenes x {args.views} views in {len(shards)} shards -> {args.out}; next: "
-          f"sudd pretrain {args.out} --data {args.offsets_from} --out runs/pretrain --steps 3000")
+          f"sudd pretrain {args.out} --data {args.offsets_from} --out runs/pretrain --config "
+          f"policy/configs/demo_pick_place.toml --steps 3000")
     return 0
