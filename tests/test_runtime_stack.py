@@ -55,8 +55,11 @@ class Watch:
 def _start(bundle, **robot):
     la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, **robot), hub="tcp/127.0.0.1:0")
     la.start()
+    # Subscribe before the nodes are ready: the robot node's fault clocks start with it, and on a loaded
+    # machine an injected fault can fire before the slowest node reports ready.
+    w = Watch(la)
     info = la.wait_ready(90)
-    return la, info, Watch(la)
+    return la, info, w
 
 
 def _clean_exit(la):
