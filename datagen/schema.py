@@ -78,3 +78,24 @@ EPISODE_META_KEYS = (
     "planner",  # "offline" or "llm:<model>"
     "dr",  # the domain-randomization record
 )
+
+
+def episode_success(meta: dict) -> bool:
+    """The training label of an episode: meta["label"]["value"] (what the data generator chose), else the
+    synthetic episodes' meta["label"]["success"], else meta["success"]."""
+    label = meta.get("label")
+    if isinstance(label, dict):
+        for key in ("value", "success"):
+            if label.get(key) is not None:
+                return bool(label[key])
+    return bool(meta.get("success"))
+
+
+def grasp_and_release_steps(action: np.ndarray) -> tuple[int, int]:
+    """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> the step where the gripper first
+    closes and the step where it next opens (the episode's last step if it never does)."""
+    shut = action[:, -1] > 0.5
+    t_close = int(np.argmax(shut)) if shut.any() else len(shut) - 1
+    after = np.flatnonzero(~shut[t_close:])
+    t_open = t_close + int(after[0]) if len(after) else len(shut) - 1
+    return t_close, t_open

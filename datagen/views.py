@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from datagen.recorder import Recorder
-from datagen.schema import IMAGE_SIZE
+from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
+from sim.rotations import rotvec_to_matrix
 from sim.state import StateView
 from sim.tasks import Holdout
 from sim.tasks.pick_place import grasp_yaw
@@ -47,7 +48,6 @@ def measure_offsets(dataset_dir: str | Path, episodes: int = 60) -> dict:
     """Median (recorded grasp target - object position) and (release target - bin position), in metres,
     over up to `episodes` successful pick_place episodes, each rebuilt from its seed for the positions."""
     from datagen.store import Dataset
-    from policy.data import episode_success, grasp_and_release_steps
 
     store = Dataset(dataset_dir)
     grasp, release = [], []
@@ -70,18 +70,6 @@ def measure_offsets(dataset_dir: str | Path, episodes: int = 60) -> dict:
     return {"grasp": np.median(grasp, axis=0), "release": np.median(release, axis=0), "episodes": len(grasp)}
 
 
-def _yaw(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _tilt(rng: np.random.Generator, std: float) -> np.ndarray:
-    ax, ay = rng.normal(0.0, std, 2)
-    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
-    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
-    return rx @ ry
-
-
 def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.Generator) -> np.ndarray:
     """A TCP pose part-way from home to above the grasp point, turned part-way to the grasp yaw, with noise:
     roughly where an episode's arm is before it closes the gripper."""
@@ -92,7 +80,10 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
     home_yaw = np.arctan2(home[1, 0], home[0, 0])
     delta = (yaw - home_yaw + np.pi / 2) % np.pi - np.pi / 2  # the gripper is symmetric under a half turn
     T = np.eye(4)
-    T[:3, :3] = _yaw(t * delta + rng.normal(0.0, 0.15)) @ _tilt(rng, 0.05) @ home[:3, :3]
+    turn = t * delta + rng.normal(0.0, 0.15)
+    ax, ay = rng.normal(0.0, 0.05, 2)  # a little tilt
+    T[:3, :3] = (rotvec_to_matrix([0.0, 0.0, turn]) @ rotvec_to_matrix([ax, 0.0, 0.0])
+                 @ rotvec_to_matrix([0.0, ay, 0.0]) @ home[:3, :3])
     T[:3, 3] = p
     return T
 

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.schema import episode_success, grasp_and_release_steps  # noqa: F401 (policy.data API)
 from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
 from policy.config import PolicyConfig
@@ -55,16 +56,6 @@ def available_memory() -> float:
         return float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
         return 2e9
-
-
-def episode_success(meta: dict) -> bool:
-    """The training label of an episode (see module docstring for the precedence)."""
-    label = meta.get("label")
-    if isinstance(label, dict):
-        for key in ("value", "success"):
-            if label.get(key) is not None:
-                return bool(label[key])
-    return bool(meta.get("success"))
 
 
 def is_validation(meta: dict, fraction: float) -> bool:
@@ -128,16 +119,6 @@ def to_device(batch, dev):
 
 # metres -> units of the "tcp" auxiliary target: offsets across the reachable table come out about unit size
 AUX_TCP_SCALE = 0.25
-
-
-def grasp_and_release_steps(action: np.ndarray) -> tuple[int, int]:
-    """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> the step where the gripper first
-    closes and the step where it next opens (the episode's last step if it never does)."""
-    shut = action[:, -1] > 0.5
-    t_close = int(np.argmax(shut)) if shut.any() else len(shut) - 1
-    after = np.flatnonzero(~shut[t_close:])
-    t_open = t_close + int(after[0]) if len(after) else len(shut) - 1
-    return t_close, t_open
 
 
 def grasp_and_release(normalized: np.ndarray, steps: tuple[int, int]) -> torch.Tensor:

@@ -31,7 +31,7 @@ from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, color_jitter, crop, jitter_factors, relative_to_tcp
 from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
-from policy.train import EMA, _save, lr_factor
+from policy.train import EMA, lr_factor, save_checkpoint
 from policy.validate import Validator
 from policy.warm_start import PRETRAINED
 
@@ -140,7 +140,7 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
                 acc, n_acc, t_log = 0.0, 0, now
             if validator is not None and (step % cfg.val_every == 0 or step == steps):
                 f.write(json.dumps({"step": step, **validator(ema.model, torch.device("cpu"))}) + "\n")
-    checkpoint = _save(run_dir, steps, steps, model, ema, opt, sched, cfg)
+    checkpoint = save_checkpoint(run_dir, steps, steps, model, ema, opt, sched, cfg)
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
     checks = [r for r in rows if "val_loss" in r]
     losses = [r["loss"] for r in rows if "loss" in r]

@@ -145,7 +145,8 @@ def load_run_model(run_dir: str | Path, checkpoint: str | Path | None = None, em
     return model.eval(), cfg, {"step": state["step"], "checkpoint": str(path), "ema": ema}
 
 
-def _save(run_dir: Path, step: int, total: int, model, ema: EMA, opt, sched, cfg: PolicyConfig) -> Path:
+def save_checkpoint(run_dir: Path, step: int, total: int, model, ema: EMA, opt, sched,
+                    cfg: PolicyConfig) -> Path:
     ckpt_dir = run_dir / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     path = ckpt_dir / f"step_{step:08d}.pt"
@@ -297,10 +298,10 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
                 with open(run_dir / "metrics.jsonl", "a") as f:
                     f.write(json.dumps({"step": done, **validator(ema.model, dev)}) + "\n")
             if done % cfg.checkpoint_every == 0 and done != batches.stop and rank == 0:
-                _save(run_dir, done, total, model, ema, opt, sched, cfg)
+                save_checkpoint(run_dir, done, total, model, ema, opt, sched, cfg)
     except KeyboardInterrupt:
         if rank == 0 and world == 1 and step > start:
-            _save(run_dir, step, total, model, ema, opt, sched, cfg)
+            save_checkpoint(run_dir, step, total, model, ema, opt, sched, cfg)
         raise
     finally:
         bar.close()
@@ -309,7 +310,7 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
                "replica_max_diff": _replica_diff(model, dev, world)}
     if rank == 0:
         if step > start or latest_checkpoint(run_dir) is None:
-            summary["checkpoint"] = str(_save(run_dir, step, total, model, ema, opt, sched, cfg))
+            summary["checkpoint"] = str(save_checkpoint(run_dir, step, total, model, ema, opt, sched, cfg))
         rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if x.strip()] \
             if (run_dir / "metrics.jsonl").exists() else []
         losses = [r for r in rows if "loss" in r]
