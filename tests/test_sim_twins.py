@@ -1,5 +1,5 @@
-"""Scenario tests of the sim twins: a grasp that survives shaking, a protective stop against the table, the
-realtime physics thread, and lock-step determinism.
+"""Scenario tests of the sim twins: a grasp that survives shaking, a protective stop against the table (and none
+for a graze), the realtime physics thread, and lock-step determinism.
 
 Motions are computed with MuJoCo itself (damped least squares on the "tcp" site with mj_jacSite), so these
 tests do not depend on the analytic IK module.
@@ -171,12 +171,57 @@ def test_protective_stop_on_table_contact_holds_and_recovers():
     assert not rig.protective_stopped and arm.state().tcp_pose[2] > 0.09
 
 
+def test_a_graze_on_the_table_is_not_a_stop_but_pressing_on_is():
+    world = make_world(block=False)
+    rig = SimRig(world)
+    arm, ik, m = rig.arm, TcpIK(world), world.model
+    R_down = world.tcp_pose()[:3, :3].copy()
+    x, y, z = world.tcp_pose()[:3, 3]
+    table = m.geom("table").id
+
+    def table_force() -> float:
+        d, f6, worst = world.data, np.zeros(6), 0.0
+        for i in range(d.ncon):
+            g = d.contact.geom[i]
+            if table in g and rig.geom_robot[g].any():
+                mujoco.mj_contactForce(m, d, i, f6)
+                worst = max(worst, abs(f6[0]))
+        return worst
+
+    def servo(z_cmd: float, q):
+        q = ik.solve(q, [x, y, z_cmd], R_down, iters=10)
+        assert arm.servo_j(q, time=rig.control_period, lookahead_time=0.05, gain=1000)
+        rig.step(1)
+        return q
+
+    q = arm.state().q
+    while table_force() == 0.0:  # descend at 2 cm/s until the fingers first touch the table
+        z -= 0.02 * rig.control_period
+        assert z > -0.02, "never touched the table"
+        q = servo(z, q)
+    worst = 0.0
+    for _ in range(int(1.0 / rig.control_period)):  # hold there for a second: a light, lasting contact
+        q = servo(z, q)
+        worst = max(worst, table_force())
+    assert 0.0 < worst < rig.safety.force_limit_n and not rig.protective_stopped, rig.stop_reason
+    z_touch = z
+    for _ in range(int(2.0 / rig.control_period)):  # now press on at 2 cm/s (the open fingers splay first)
+        z -= 0.02 * rig.control_period
+        if not arm.servo_j(ik.solve(q, [x, y, z], R_down, iters=10), time=rig.control_period,
+                           lookahead_time=0.05, gain=1000):
+            break
+        rig.step(1)
+    assert rig.protective_stopped and "contact force" in rig.stop_reason and "table" in rig.stop_reason
+    assert arm.state().tcp_pose[2] > z_touch - 0.03
+
+
 def test_self_collision_and_force_rules_classify_geoms():
     rig = SimRig(make_world())
     m = rig.world.model
     pads = [m.geom(n).id for n in ("gripper/left_pad1", "gripper/right_pad2")]
     assert rig.geom_pad[pads].all() and rig.geom_robot[pads].all()
-    assert rig.geom_static[m.geom("table").id] and rig.geom_static[m.geom("floor").id]
+    for static in ("table", "floor"):
+        assert not rig.geom_robot[m.geom(static).id] and not rig.geom_movable[m.geom(static).id]
     assert rig.geom_movable[m.geom("block/geom").id] and not rig.geom_robot[m.geom("block/geom").id]
     rig.step(200)  # resting at home: no spurious stop from the block on the table or the closed linkage
     assert not rig.protective_stopped

@@ -328,10 +328,7 @@ class ControllerCore:
             self.inputs.clear()
             self.outputs.clear()
             self.slider, self.popup, self.muted = 1.0, False, False
-            rig._stop_ns = rig.stop_reason = None
-            rig.world.reset()
-            rig.arm._freeze()
-            rig._grace = rig._violating_pairs()[0]
+            rig.reset()
 
     def rpc_drop_network(self) -> None:
         with self.lock:

@@ -13,10 +13,11 @@ world and the host's monotonic clock. Two clock modes:
 One control cycle = controller updates (arm interpolator, gripper ramp) + the physics substeps of one
 controller period + the protective-stop contact check after every physics step.
 
-Protective stop (as the UR safety system): a moving robot geom touching anything welded to the world
-(table, floor, fixed furniture), two robot parts colliding (arm link with arm link or with the gripper;
-the gripper's own linkage is exempt), or any robot contact pressing harder than `force_limit_n` (finger pads
-on movable objects are exempt: that is a grasp). The arm then holds the position it had, commands return
+Protective stop (as the UR safety system): two robot parts colliding (arm link with arm link or with the
+gripper; the gripper's own linkage is exempt), or any other robot contact pressing harder than
+`force_limit_n`, be it on something welded to the world (table, floor, bins) or on a movable object (finger
+pads on movable objects are exempt: that is a grasp). Like the real arm's force limit, a graze is not a
+stop; a stiff position-controlled arm driven into the table builds the limit within millimetres. The arm then holds the position it had, commands return
 False, and `unlock_protective_stop()` succeeds only `unlock_delay_s` after the stop. Contacts present at
 unlock (or at start-up) are forgiven until they separate, so the arm can be moved away. Note the scene's walls have no
 collision geometry (contype 0), so they cannot trigger a stop.
@@ -73,7 +74,7 @@ class SimRig:
         self._classify_geoms()
         # Contacts present at start-up are forgiven until they separate, as after an unlock (the robot
         # was placed that way; e.g. the UR5 variant's shoulder capsule rests in the table top).
-        self._grace = self._violating_pairs()[0]
+        self._grace = self._present_contacts()
         self._cameras: list[SimCamera] = []
         self._thread: threading.Thread | None = None
         self._running = False
@@ -214,13 +215,21 @@ class SimRig:
                 self._stop_ns, self.stop_reason = self.now_ns(), reason
                 self.arm._freeze()
 
+    def reset(self) -> None:
+        """Back to the world's initial state with no stop latched, as after a controller power cycle."""
+        with self.lock:
+            self._stop_ns, self.stop_reason = None, None
+            self.world.reset()
+            self.arm._freeze()
+            self._grace = self._present_contacts()
+
     def _unlock(self) -> bool:
         with self.lock:
             if self._stop_ns is None:
                 return True
             if self.now_ns() - self._stop_ns < self.safety.unlock_delay_s * 1e9:
                 return False
-            self._grace = self._violating_pairs()[0]
+            self._grace = self._present_contacts()
             self._stop_ns, self.stop_reason = None, None
             self.arm._freeze()  # resume from where the arm is, with no stale motion
             return True
@@ -241,47 +250,54 @@ class SimRig:
         self.geom_gripper = np.array([names[b].startswith(GRIPPER_PREFIX) for b in gb], bool)
         self.geom_pad = np.zeros(m.ngeom, bool)
         self.geom_pad[[m.geom(n).id for n in GRIPPER_PAD_GEOMS]] = True
-        self.geom_static = ~self.geom_robot & (self.geom_weld == 0)
         self.geom_movable = ~self.geom_robot & (self.geom_weld != 0)
 
-    def _violating_pairs(self) -> tuple[set, list]:
-        """Contact pairs that always stop (robot-static, robot self-collision) and force-checked contacts."""
+    def _robot_contacts(self) -> tuple[dict, dict]:
+        """Robot contacts as {(geom, geom): contact indices}: those that always stop (self-collision) and
+        those checked against the force limit (everything else but a grasp)."""
         d = self.world.data
         n = d.ncon
         if n == 0:
-            return set(), []
+            return {}, {}
         g = d.contact.geom[:n]
         g1, g2 = g[:, 0], g[:, 1]
         r1, r2 = self.geom_robot[g1], self.geom_robot[g2]
         if not np.any(r1 | r2):
-            return set(), []
-        moving1, moving2 = r1 & (self.geom_weld[g1] != 0), r2 & (self.geom_weld[g2] != 0)
-        hit_static = (moving1 & self.geom_static[g2]) | (moving2 & self.geom_static[g1])
-        self_hit = (r1 & r2 & ~(self.geom_gripper[g1] & self.geom_gripper[g2])
-                    & (self.geom_weld[g1] != self.geom_weld[g2]))
+            return {}, {}
+        hard = (r1 & r2 & ~(self.geom_gripper[g1] & self.geom_gripper[g2])
+                & (self.geom_weld[g1] != self.geom_weld[g2]))
         grasp = (self.geom_pad[g1] & self.geom_movable[g2]) | (self.geom_pad[g2] & self.geom_movable[g1])
-        bad = hit_static | self_hit
-        pairs = {(int(min(a, b)), int(max(a, b))) for a, b in g[bad]}
-        force_check = np.flatnonzero((r1 | r2) & ~bad & ~grasp).tolist()
-        return pairs, force_check
+
+        def keyed(mask):  # a geom pair may touch at several points (box on box): keep them all
+            out: dict[tuple[int, int], list[int]] = {}
+            for i in np.flatnonzero(mask):
+                out.setdefault((int(min(g1[i], g2[i])), int(max(g1[i], g2[i]))), []).append(int(i))
+            return out
+        return keyed(hard), keyed((r1 | r2) & ~hard & ~grasp)
+
+    def _present_contacts(self) -> set[tuple[int, int]]:
+        hard, soft = self._robot_contacts()
+        return set(hard) | set(soft)
 
     def _check_contacts(self) -> None:
-        pairs, force_check = self._violating_pairs()
+        hard, soft = self._robot_contacts()
         if self._grace:
-            self._grace &= pairs  # a forgiven contact that separated is no longer forgiven
-            pairs -= self._grace
+            self._grace &= set(hard) | set(soft)  # a forgiven contact that separated is no longer forgiven
         m, d = self.world.model, self.world.data
-        if pairs:
-            a, b = sorted(pairs)[0]
-            self.trigger_protective_stop(f"contact {_geom_name(m, a)} <-> {_geom_name(m, b)}")
+        for pair in sorted(set(hard) - self._grace):
+            self.trigger_protective_stop(f"contact {_geom_name(m, pair[0])} <-> {_geom_name(m, pair[1])}")
             return
         f6 = np.zeros(6)
-        for i in force_check:
-            mujoco.mj_contactForce(m, d, i, f6)
-            if abs(f6[0]) > self.safety.force_limit_n:
-                g = d.contact.geom[i]
-                self.trigger_protective_stop(f"contact force {abs(f6[0]):.0f} N > {self.safety.force_limit_n:.0f} N "
-                                             f"between {_geom_name(m, g[0])} and {_geom_name(m, g[1])}")
+        for pair, contacts in soft.items():
+            if pair in self._grace:
+                continue
+            normal = 0.0  # the pair's total normal force: what a force/torque sensor would feel
+            for i in contacts:
+                mujoco.mj_contactForce(m, d, i, f6)
+                normal += abs(f6[0])
+            if normal > self.safety.force_limit_n:
+                self.trigger_protective_stop(f"contact force {normal:.0f} N > {self.safety.force_limit_n:.0f} N "
+                                             f"between {_geom_name(m, pair[0])} and {_geom_name(m, pair[1])}")
                 return
 
 
