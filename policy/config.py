@@ -88,6 +88,11 @@ class PolicyConfig:
     aux_condition_noise: float = field(default=0.1, metadata=spec(0.0, 10.0, doc=(
         "std of the Gaussian noise on the true points fed in training, in the head's units (tcp frame: "
         "0.25 m per unit), so the denoiser learns to follow a point about as wrong as the head's")))
+    image_cond_dropout: float = field(default=0.0, metadata=spec(0.0, 1.0, doc=(
+        "share of training samples whose image features are hidden from the denoiser (zeroed in its cond; the "
+        "aux head still reads them), so it must act on the aux points; 1 = never shown, at inference too: a "
+        "points-and-proprio policy whose only view of the scene is the head's grasp and release points "
+        "(needs aux_condition)")))
     freeze_pretrained: bool = field(default=False, metadata=spec(doc=(
         "keep the image encoders and the aux head as the warm start left them (sudd train --init-from a `sudd "
         "pretrain` run: what thousands of rendered scenes taught them), so a few hundred episodes cannot turn "
@@ -136,6 +141,9 @@ class PolicyConfig:
         if self.aux_condition and self.aux_target_weight <= 0:
             raise ConfigError("aux_condition needs aux_target_weight > 0 (the aux head that predicts the points "
                               "it feeds to the denoiser is trained only then)")
+        if self.image_cond_dropout > 0 and not self.aux_condition:
+            raise ConfigError(f"image_cond_dropout {self.image_cond_dropout} needs aux_condition = true (without "
+                              "the aux points a denoiser with hidden images has no view of the scene)")
         if len(set(self.cameras)) != len(self.cameras) or not self.cameras:
             raise ConfigError(f"cameras {self.cameras} must be distinct and non-empty")
         if self.inference_steps > self.num_train_timesteps:

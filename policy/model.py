@@ -267,13 +267,14 @@ class DiffusionPolicy(nn.Module):
         features = self.obs_encoder(images, proprio, text)
         if not self.cfg.aux_condition:
             return features
-        return torch.cat([features, self.aux_head(self.image_features(features))], dim=1)
+        shown = features if self.cfg.image_cond_dropout < 1 else self.hide_images(features, torch.zeros(1, 1))
+        return torch.cat([shown, self.aux_head(self.image_features(features))], dim=1)
 
     def forward(self, noisy: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         return self.unet(noisy, timestep, cond)
 
     def loss(self, batch: dict, noise: torch.Tensor, timesteps: torch.Tensor,
-             aux_noise: torch.Tensor | None = None) -> torch.Tensor:
+             aux_noise: torch.Tensor | None = None, image_keep: torch.Tensor | None = None) -> torch.Tensor:
         """MSE between the true and predicted noise of x_t = sqrt(ab_t) a0 + sqrt(1 - ab_t) eps.
 
         batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
@@ -282,12 +283,16 @@ class DiffusionPolicy(nn.Module):
         aux_noise (B, 6) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
         aux_condition_noise times this (teacher forcing: it learns to follow the points from the first step,
         while the head's own predictions are still poor); None = the true points.
+        image_keep (B,) of 0/1, with image_cond_dropout: 0 hides that sample's image features from the
+        denoiser; None = what inference does (hidden only when image_cond_dropout is 1).
         """
         features = self.obs_encoder(batch["images"], batch["proprio"], batch["text"])
         cond = features
         if self.cfg.aux_condition:
             fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
-            cond = torch.cat([features, fed], dim=1)
+            if image_keep is None:
+                image_keep = torch.full((1,), float(self.cfg.image_cond_dropout < 1))
+            cond = torch.cat([self.hide_images(features, image_keep.view(-1, 1).to(features)), fed], dim=1)
         loss = F.mse_loss(self.predict_added_noise(cond, batch["action"], noise, timesteps), noise)
         if self.aux_head is not None:
             loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_head(self.image_features(features)),
@@ -299,6 +304,17 @@ class DiffusionPolicy(nn.Module):
         """Noise `action` to x_t with `noise` at `timesteps` and predict that noise back: (B, Tp, Da)."""
         ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
         return self(ab.sqrt() * action + (1 - ab).sqrt() * noise, timesteps, cond)
+
+    def hide_images(self, features: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+        """Every observation step's camera features times keep ((B, 1) or (1, 1) of 0/1); the proprio and
+        text features pass unchanged."""
+        cfg = self.cfg
+        width = len(cfg.cameras) * cfg.image_feature_dim
+        per_step = width + cfg.proprio_feature_dim
+        mask = torch.ones(1, features.shape[1], dtype=features.dtype, device=features.device)
+        for s in range(cfg.obs_horizon):
+            mask[:, s * per_step:s * per_step + width] = 0
+        return features * (mask + (1 - mask) * keep)
 
     def image_features(self, cond: torch.Tensor) -> torch.Tensor:
         """The newest observation step's camera features, sliced out of the global cond (see the layout

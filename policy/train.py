@@ -272,8 +272,11 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             noise = torch.randn(batch["action"].shape, generator=g).to(dev)
             t = torch.randint(0, cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(dev)
             aux_noise = torch.randn(noise.shape[0], AUX_DIM, generator=g).to(dev) if cfg.aux_condition else None
+            keep = None
+            if cfg.image_cond_dropout > 0:
+                keep = (torch.rand(noise.shape[0], generator=g) >= cfg.image_cond_dropout).float().to(dev)
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
-                loss = net(batch, noise, t, aux_noise)
+                loss = net(batch, noise, t, aux_noise, keep)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip > 0:
@@ -332,8 +335,8 @@ class _Loss(torch.nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, batch, noise, t, aux_noise=None):
-        return self.policy.loss(batch, noise, t, aux_noise)
+    def forward(self, batch, noise, t, aux_noise=None, image_keep=None):
+        return self.policy.loss(batch, noise, t, aux_noise, image_keep)
 
 
 def _mean_over_ranks(x: float, dev, world: int) -> float:

@@ -145,3 +145,48 @@ def test_frozen_pretrained_parts_keep_the_warm_start_and_the_rest_trains(data_di
             torch.testing.assert_close(after[name], p)
     assert not torch.equal(after["unet.film_cond.1.weight"][:, :-AUX_DIM],
                            before.state_dict()["unet.film_cond.1.weight"])
+
+
+def test_image_cond_dropout_hides_the_image_features_from_the_denoiser_only(data_dir, tmp_path):
+    with pytest.raises(ConfigError, match="image_cond_dropout 1.0 needs aux_condition"):
+        load_policy_config(TINY, {**AUX, "image_cond_dropout": 1.0})
+    cfg = load_policy_config(TINY, {**AUX, "aux_condition": True, "obs_horizon": 2, "image_cond_dropout": 1.0})
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    b, other = _batch(cfg), _batch(cfg, seed=1)
+    width = len(cfg.cameras) * cfg.image_feature_dim
+    per_step = width + cfg.proprio_feature_dim
+    with torch.no_grad():
+        cond = model.encode(b["images"], b["proprio"], b["text"])
+        features = model.obs_encoder(b["images"], b["proprio"], b["text"])
+        for s in range(cfg.obs_horizon):  # images hidden, proprio shown, at every observation step
+            assert not cond[:, s * per_step:s * per_step + width].any()
+            torch.testing.assert_close(cond[:, s * per_step + width:(s + 1) * per_step],
+                                       features[:, s * per_step + width:(s + 1) * per_step])
+        torch.testing.assert_close(cond[:, -AUX_DIM:], model.aux_head(model.image_features(features)))
+        # Other images reach the denoiser only through the head's points: same points, same cond.
+        swapped = model.obs_encoder(other["images"], b["proprio"], b["text"])
+        fed = torch.cat([model.hide_images(swapped, torch.zeros(1, 1)), cond[:, -AUX_DIM:]], dim=1)
+        torch.testing.assert_close(fed, cond)
+
+        noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
+        head_term = torch.nn.functional.mse_loss(model.aux_head(model.image_features(features)), b["aux"])
+        shown = dict(b, images=other["images"])  # the aux head's term differs; the denoiser's must not
+        other_head = model.aux_head(model.image_features(model.obs_encoder(other["images"], b["proprio"], b["text"])))
+        hidden = [float(model.loss(x, noise, t, image_keep=torch.zeros(3)) - h) for x, h in
+                  ((b, head_term), (shown, torch.nn.functional.mse_loss(other_head, b["aux"])))]
+        assert abs(hidden[0] - hidden[1]) < 1e-6
+        kept = [float(model.loss(x, noise, t, image_keep=torch.ones(3)) - h) for x, h in
+                ((b, head_term), (shown, torch.nn.functional.mse_loss(other_head, b["aux"])))]
+        assert abs(kept[0] - kept[1]) > 1e-6  # kept samples do show the images
+
+    half = load_policy_config(TINY, {**AUX, "aux_condition": True, "image_cond_dropout": 0.5})
+    torch.manual_seed(0)
+    shown_model = DiffusionPolicy(half).eval()
+    with torch.no_grad():  # below 1, inference shows the images
+        torch.testing.assert_close(shown_model.encode(b["images"], b["proprio"], b["text"])[:, :-AUX_DIM],
+                                   shown_model.obs_encoder(b["images"], b["proprio"], b["text"]))
+    run = tmp_path / "run"
+    summary = train(data_dir, dict(TINY), run, steps=2, embedder=hash_embedder, progress=False, threads=1,
+                    overrides={**AUX, "aux_condition": True, "image_cond_dropout": 0.5})
+    assert np.isfinite(summary["final_loss"])
