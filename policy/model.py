@@ -264,11 +264,19 @@ class DiffusionPolicy(nn.Module):
     def encode(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
         """The denoiser's global cond (B, G): the observation features, with aux_condition followed by the aux
         head's predicted points (what inference has; training feeds the true ones, see `loss`)."""
-        features = self.obs_encoder(images, proprio, text)
+        return self.cond_from(self.obs_encoder(images, proprio, text))
+
+    def cond_from(self, features: torch.Tensor) -> torch.Tensor:
+        """The obs encoder's features (B, G') -> the denoiser's global cond at inference (B, G)."""
         if not self.cfg.aux_condition:
             return features
         shown = features if self.cfg.image_cond_dropout < 1 else self.hide_images(features, torch.zeros(1, 1))
-        return torch.cat([shown, self.aux_head(self.image_features(features))], dim=1)
+        return torch.cat([shown, self.aux_points(features)], dim=1)
+
+    def aux_points(self, features: torch.Tensor) -> torch.Tensor:
+        """The aux head's grasp and release points (B, AUX_DIM) from the obs encoder's features (not from a
+        cond, whose image features image_cond_dropout may have hidden)."""
+        return self.aux_head(self.image_features(features))
 
     def forward(self, noisy: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         return self.unet(noisy, timestep, cond)
@@ -295,8 +303,7 @@ class DiffusionPolicy(nn.Module):
             cond = torch.cat([self.hide_images(features, image_keep.view(-1, 1).to(features)), fed], dim=1)
         loss = F.mse_loss(self.predict_added_noise(cond, batch["action"], noise, timesteps), noise)
         if self.aux_head is not None:
-            loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_head(self.image_features(features)),
-                                                                  batch["aux"])
+            loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_points(features), batch["aux"])
         return loss
 
     def predict_added_noise(self, cond: torch.Tensor, action: torch.Tensor, noise: torch.Tensor,

@@ -123,7 +123,7 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     for step in tqdm(range(1, steps + 1), desc="pretrain", unit="step", disable=not progress):
         b = views.batch(rng, cfg.batch_size)
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
-        loss = F.mse_loss(model.aux_head(model.image_features(features)), b["aux"])
+        loss = F.mse_loss(model.aux_points(features), b["aux"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip > 0:

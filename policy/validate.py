@@ -49,11 +49,11 @@ class Validator:
                 batch = finish_images(batch) if ds.uint8_images else batch
                 noise = torch.randn(batch["action"].shape, generator=g).to(device)
                 t = torch.randint(0, model.cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(device)
-                cond = model.encode(batch["images"], batch["proprio"], batch["text"])
-                err = model.predict_added_noise(cond, batch["action"], noise, t) - noise
+                features = model.obs_encoder(batch["images"], batch["proprio"], batch["text"])
+                err = model.predict_added_noise(model.cond_from(features), batch["action"], noise, t) - noise
                 losses.append(err.square().mean(dim=(1, 2)).cpu())
                 if model.aux_head is not None:
-                    pred = model.aux_head(model.image_features(cond))[:, :3].float().cpu().numpy()
+                    pred = model.aux_points(features)[:, :3].float().cpu().numpy()
                     errors.append(self._metres(pred) - self._metres(batch["aux"][:, :3].cpu().numpy()))
             out[f"{name}_loss"] = float(torch.cat(losses).mean())
             if errors:

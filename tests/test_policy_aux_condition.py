@@ -58,7 +58,7 @@ def test_inference_cond_ends_with_the_heads_prediction():
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
         assert cond.shape == (3, cfg.global_cond_dim)
         torch.testing.assert_close(cond[:, :-AUX_DIM], features)
-        torch.testing.assert_close(cond[:, -AUX_DIM:], model.aux_head(model.image_features(features)))
+        torch.testing.assert_close(cond[:, -AUX_DIM:], model.aux_points(features))
 
 
 def test_training_feeds_the_true_points_plus_scaled_noise():
@@ -71,7 +71,7 @@ def test_training_feeds_the_true_points_plus_scaled_noise():
     mse = torch.nn.functional.mse_loss
     with torch.no_grad():
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
-        head = model.aux_head(model.image_features(features))
+        head = model.aux_points(features)
         fed = torch.cat([features, b["aux"] + 0.5 * z], dim=1)
         want = mse(model.predict_added_noise(fed, b["action"], noise, t), noise) + mse(head, b["aux"])
         torch.testing.assert_close(model.loss(b, noise, t, z), want)
@@ -163,16 +163,16 @@ def test_image_cond_dropout_hides_the_image_features_from_the_denoiser_only(data
             assert not cond[:, s * per_step:s * per_step + width].any()
             torch.testing.assert_close(cond[:, s * per_step + width:(s + 1) * per_step],
                                        features[:, s * per_step + width:(s + 1) * per_step])
-        torch.testing.assert_close(cond[:, -AUX_DIM:], model.aux_head(model.image_features(features)))
+        torch.testing.assert_close(cond[:, -AUX_DIM:], model.aux_points(features))
         # Other images reach the denoiser only through the head's points: same points, same cond.
         swapped = model.obs_encoder(other["images"], b["proprio"], b["text"])
         fed = torch.cat([model.hide_images(swapped, torch.zeros(1, 1)), cond[:, -AUX_DIM:]], dim=1)
         torch.testing.assert_close(fed, cond)
 
         noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
-        head_term = torch.nn.functional.mse_loss(model.aux_head(model.image_features(features)), b["aux"])
+        head_term = torch.nn.functional.mse_loss(model.aux_points(features), b["aux"])
         shown = dict(b, images=other["images"])  # the aux head's term differs; the denoiser's must not
-        other_head = model.aux_head(model.image_features(model.obs_encoder(other["images"], b["proprio"], b["text"])))
+        other_head = model.aux_points(model.obs_encoder(other["images"], b["proprio"], b["text"]))
         hidden = [float(model.loss(x, noise, t, image_keep=torch.zeros(3)) - h) for x, h in
                   ((b, head_term), (shown, torch.nn.functional.mse_loss(other_head, b["aux"])))]
         assert abs(hidden[0] - hidden[1]) < 1e-6

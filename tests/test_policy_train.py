@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -120,6 +121,18 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     for ds in (val, fit):  # the image-free target is the one the samples carry
         assert all(torch.equal(ds.aux_target(i), ds[i]["aux"]) for i in (0, len(ds) // 2, len(ds) - 1))
     assert first["guess_grasp_cm"] > 0
+    # The head reads the images even where the denoiser may not: its error is the same with them hidden.
+    hidden = DiffusionPolicy(load_policy_config(TINY, {"val_fraction": 0.3, "aux_target_weight": 1.0,
+                                                       "action_frame": "tcp", "aux_target_frame": "tcp",
+                                                       "aux_condition": True, "image_cond_dropout": 1.0}))
+    shown = DiffusionPolicy(replace(hidden.cfg, image_cond_dropout=0.0))
+    shown.load_state_dict(hidden.state_dict())
+    tcp_val = PolicyDataset(data, hidden.cfg, train=False, embedder=hash_embedder, split="val")
+    tcp_fit = PolicyDataset(data, hidden.cfg, train=False, embedder=hash_embedder, split="train",
+                            normalizer=tcp_val.normalizer)
+    tcp_check = Validator(tcp_val, tcp_fit, samples=16, batch=8)
+    a, b = tcp_check(hidden, torch.device("cpu")), tcp_check(shown, torch.device("cpu"))
+    assert a["val_grasp_cm"] == b["val_grasp_cm"] and a["val_loss"] != b["val_loss"]
 
     summary = train(data, cfg, tmp_path / "run", steps=10, embedder=hash_embedder, progress=False, threads=1)
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
