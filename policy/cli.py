@@ -78,6 +78,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--fp32-weights", action="store_true",
                     help="store the policy graphs' weights as float32 (default float16: half the bytes, same "
                          "speed; the manifest's weights.rounding says what the rounding changes)")
+    ex.add_argument("--inference-steps", type=int, default=None, metavar="N",
+                    help="DDIM steps per chunk (default: the run's inference_steps); more steps give smoother "
+                         "chunks for more latency, see `sudd bench policy`")
     ex.add_argument("--restore-text-encoder", type=Path, metavar="BUNDLE",
                     help="instead of exporting: write BUNDLE's text encoder and tokenizer back, then verify")
     ex.add_argument("--json", action="store_true", help="print the manifest (or the restore summary) as JSON")
@@ -139,7 +142,7 @@ def _export(args) -> int:
     from policy.export import export
 
     manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
-                      fp16_weights=not args.fp32_weights)
+                      fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:

@@ -144,12 +144,19 @@ class _StepGraph(torch.nn.Module):
 
 
 def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Path | None = None, ema: bool = True,
-           opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True) -> dict:
-    """Export a training run (latest checkpoint, EMA weights) to a bundle directory; returns the manifest."""
+           opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
+           inference_steps: int | None = None) -> dict:
+    """Export a training run (latest checkpoint, EMA weights) to a bundle directory; returns the manifest.
+
+    inference_steps: DDIM steps the bundle samples with, instead of the run's config (the network is trained
+    for every timestep, so this is an inference choice: more steps, smoother chunks, more latency)."""
+    from policy.config import load_policy_config
     from policy.train import load_run_model
 
     run_dir = Path(run_dir)
     model, cfg, training = load_run_model(run_dir, checkpoint, ema)
+    if inference_steps is not None:
+        model.cfg = load_policy_config(cfg, {"inference_steps": inference_steps})
     warm = read_record(run_dir)
     if warm is not None:
         training["warm_start"] = warm

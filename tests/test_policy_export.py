@@ -22,6 +22,7 @@ from policy.sampling import predict_chunk
 from policy.testing import TINY, hash_embedder, synthetic_dataset
 from policy.text_export import restore_text_encoder, text_encoder_onnx
 from policy.train import load_run_model, train
+from sim.config import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"  # content-keyed: never stale
@@ -280,10 +281,15 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
 
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["export", str(run), "--out", str(tmp_path / "b")])
+    args = parser.parse_args(["export", str(run), "--out", str(tmp_path / "b"), "--inference-steps", "3"])
     monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
     assert args.func(args) == 0
     assert "parity step" in capsys.readouterr().out and (tmp_path / "b" / "manifest.json").is_file()
+    m = json.loads((tmp_path / "b" / "manifest.json").read_text())  # the bundle samples with 3 steps, checked
+    assert len(m["ddim"]["timesteps"]) == 3 and m["config"]["inference_steps"] == 3
+    assert m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL and len(Bundle.load(tmp_path / "b")._schedule) == 3
+    with pytest.raises(ConfigError, match="inference_steps"):
+        args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--inference-steps", "0"]))
     (tmp_path / "b" / "text_encoder.onnx").unlink()
     args = parser.parse_args(["export", "--restore-text-encoder", str(tmp_path / "b")])
     assert args.func(args) == 0 and "text encoder restored" in capsys.readouterr().out
