@@ -97,6 +97,11 @@ class PolicyConfig:
         "keep the image encoders and the aux head as the warm start left them (sudd train --init-from a `sudd "
         "pretrain` run: what thousands of rendered scenes taught them), so a few hundred episodes cannot turn "
         "them into a lookup of those scenes; the rest trains, and a CPU step skips the encoders' backward")))
+    feature_cache: int = field(default=0, metadata=spec(0, 64, doc=(
+        "with freeze_pretrained: run the frozen image encoders once over every training frame, for this many "
+        "copies (the first uncropped and unjittered, the others with the training crop and jitter), and train "
+        "the rest on those features instead of images: the encoders' forward pass and the image reads leave "
+        "the training step; 0 = encode every batch")))
     action_frame: str = field(default="base", metadata=spec(choices=("base", "tcp"), doc=(
         "frame the policy learns its chunks in: base (absolute targets) or tcp (relative to the gripper at "
         "the chunk's newest observation, see policy.action_frame); the bundle always emits absolute targets")))
@@ -144,6 +149,12 @@ class PolicyConfig:
         if self.image_cond_dropout > 0 and not self.aux_condition:
             raise ConfigError(f"image_cond_dropout {self.image_cond_dropout} needs aux_condition = true (without "
                               "the aux points a denoiser with hidden images has no view of the scene)")
+        if self.feature_cache and not self.freeze_pretrained:
+            raise ConfigError(f"feature_cache {self.feature_cache} needs freeze_pretrained = true (only frozen "
+                              "encoders give the same features every step)")
+        if self.feature_cache and self.subtask_language_prob > 0:
+            raise ConfigError("feature_cache needs subtask_language_prob = 0 (the encoders are FiLMed by the "
+                              "instruction, and a cached frame is encoded with its episode's instruction only)")
         if len(set(self.cameras)) != len(self.cameras) or not self.cameras:
             raise ConfigError(f"cameras {self.cameras} must be distinct and non-empty")
         if self.inference_steps > self.num_train_timesteps:

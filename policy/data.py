@@ -142,13 +142,15 @@ class PolicyDataset(torch.utils.data.Dataset):
 
     A sample: {"images": {camera: (To, 3, h, w) float32 in [0, 1]}, "proprio": (To, Dp) normalized,
     "action": (Tp, Da) normalized, "text": (384,) unit vector, "aux": (6,)}; with `uint8_images` the
-    images are uint8 and "jitter" (3,) holds the colour factors for `finish_images`.
+    images are uint8 and "jitter" (3,) holds the colour factors for `finish_images`; with `read_images` False
+    there are no images, and "frames" (To,) holds the rows of the sample's frames in a policy.feature_cache table
+    (a random copy in training).
     """
 
     def __init__(self, data: str | Path | EpisodeStore, cfg: PolicyConfig, train: bool = True,
                  normalizer: Normalizer | None = None, embedder: Callable[[list[str]], np.ndarray] | None = None,
                  include_failures: bool | None = None, max_cache_bytes: float | None = None,
-                 uint8_images: bool = False, split: str | None = None):
+                 uint8_images: bool = False, split: str | None = None, read_images: bool = True):
         self.store = data if isinstance(data, EpisodeStore) else EpisodeStore(data)
         self.cfg, self.train, self.uint8_images = cfg, train, uint8_images
         include = self.include_failures = cfg.include_failures if include_failures is None else include_failures
@@ -191,8 +193,12 @@ class PolicyDataset(torch.utils.data.Dataset):
         self._language(embedder)
         self.index = [(k, s) for k, T in enumerate(self.lengths)
                       for s in range(-(To - 1), max(-(To - 1), T - Tp + Ta - 1) + 1)]
+        # with read_images=False a sample names its frames (rows of policy.feature_cache's table) instead
+        self.read_images = read_images
+        self.frame_offset = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
+        self.num_frames = int(sum(self.lengths))
         H, W = cfg.image_size
-        nbytes = sum(self.lengths) * len(cfg.cameras) * H * W * 3
+        nbytes = self.num_frames * len(cfg.cameras) * H * W * 3 if read_images else 0
         self.images = None
         if max_cache_bytes is None:
             max_cache_bytes = 0.5 * available_memory()
@@ -240,8 +246,8 @@ class PolicyDataset(torch.utils.data.Dataset):
         obs = np.clip(np.arange(s, s + cfg.obs_horizon), 0, T - 1)
         act = np.clip(np.arange(s, s + cfg.pred_horizon), 0, T - 1)
         images = {}
-        jitter = jitter_factors(rng, cfg.color_jitter if self.train else 0.0)
-        for camera in cfg.cameras:
+        jitter = jitter_factors(rng, cfg.color_jitter if self.train else 0.0) if self.read_images else None
+        for camera in cfg.cameras if self.read_images else ():
             frames = self._frames(k, camera, obs)
             if self.train:
                 H, W = frames.shape[1:3]
@@ -265,8 +271,13 @@ class PolicyDataset(torch.utils.data.Dataset):
         action = self.action[k][act]
         if cfg.action_frame == "tcp":
             action = self.normalizer.normalize_action(to_tcp(action, self.tcp_pose[k][now]))
-        out = {"images": images, "proprio": torch.from_numpy(self.proprio[k][obs]), "aux": self.aux_target(index),
+        out = {"proprio": torch.from_numpy(self.proprio[k][obs]), "aux": self.aux_target(index),
                "action": torch.from_numpy(action), "text": self.text_table[self.text_row[text]]}
+        if not self.read_images:  # copy c of frame f is row c * num_frames + f; copy 0 is the unaugmented one
+            copy = int(rng.integers(0, max(1, cfg.feature_cache))) if self.train else 0
+            out["frames"] = torch.from_numpy(copy * self.num_frames + self.frame_offset[k] + obs)
+            return out
+        out["images"] = images
         if self.uint8_images:
             out["jitter"] = torch.from_numpy(jitter)
         return out

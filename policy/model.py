@@ -133,12 +133,20 @@ class ObsEncoder(nn.Module):
         self.text = nn.Sequential(nn.Linear(TEXT_DIM, cfg.text_feature_dim), nn.Mish(),
                                   nn.Linear(cfg.text_feature_dim, cfg.text_feature_dim))
 
-    def forward(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
-        b, to = proprio.shape[:2]
-        per_frame = text.repeat_interleave(to, dim=0)  # (B*To, 384), in the order of images.flatten(0, 1)
-        feats = [self.images[c](images[c].flatten(0, 1), per_frame).view(b, to, -1) for c in self.cameras]
+    def forward(self, images: dict[str, torch.Tensor] | None, proprio: torch.Tensor, text: torch.Tensor,
+                image_features: torch.Tensor | None = None) -> torch.Tensor:
+        """image_features (B, To, cameras x image_feature_dim): what `camera_features` gave for these images,
+        computed earlier (policy.feature_cache: frozen encoders); then `images` is not read."""
+        feats = [image_features if image_features is not None else self.camera_features(images, text)]
         feats.append(self.proprio(proprio))
         return torch.cat([torch.cat(feats, dim=-1).flatten(1), self.text(text)], dim=-1)
+
+    def camera_features(self, images: dict[str, torch.Tensor], text: torch.Tensor) -> torch.Tensor:
+        """images {camera: (B, To, 3, h, w)}, text (B, 384) -> (B, To, cameras x image_feature_dim)."""
+        b, to = next(iter(images.values())).shape[:2]
+        per_frame = text.repeat_interleave(to, dim=0)  # (B*To, 384), in the order of images.flatten(0, 1)
+        return torch.cat([self.images[c](images[c].flatten(0, 1), per_frame).view(b, to, -1)
+                          for c in self.cameras], dim=-1)
 
 
 class SinusoidalPosEmb(nn.Module):
@@ -287,6 +295,7 @@ class DiffusionPolicy(nn.Module):
 
         batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
         (all normalized), aux (B, 6) (only with aux_target_weight, see policy.data.grasp_and_release);
+        instead of images, image_features (B, To, cameras x image_feature_dim) (policy.feature_cache);
         noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
         aux_noise (B, 6) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
         aux_condition_noise times this (teacher forcing: it learns to follow the points from the first step,
@@ -294,7 +303,7 @@ class DiffusionPolicy(nn.Module):
         image_keep (B,) of 0/1, with image_cond_dropout: 0 hides that sample's image features from the
         denoiser; None = what inference does (hidden only when image_cond_dropout is 1).
         """
-        features = self.obs_encoder(batch["images"], batch["proprio"], batch["text"])
+        features = self.obs_encoder(batch.get("images"), batch["proprio"], batch["text"], batch.get("image_features"))
         cond = features
         if self.cfg.aux_condition:
             fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise

@@ -31,7 +31,8 @@ from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, color_jitter, crop, jitter_factors, relative_to_tcp
 from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
-from policy.train import EMA, lr_factor, save_checkpoint
+from policy.ema import EMA
+from policy.train import lr_factor, save_checkpoint
 from policy.validate import Validator
 from policy.warm_start import PRETRAINED
 

@@ -20,7 +20,6 @@ At the end the replicas' weights are compared (max difference recorded in summar
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 import os
@@ -35,8 +34,10 @@ from torch.utils.data import DataLoader, Sampler
 from torch.utils.data._utils.collate import default_collate
 
 from policy import warm_start
+from policy.ema import EMA
 from policy.config import AUX_DIM, PolicyConfig, config_from_dict, load_policy_config
 from policy.data import PolicyDataset, finish_images, to_device
+from policy.feature_cache import image_feature_table
 from policy.model import DiffusionPolicy, count_params
 from policy.normalize import Normalizer
 from policy.plot import plot_metrics
@@ -59,36 +60,6 @@ def seed_everything(seed: int) -> None:
 
 def step_seed(seed: int, step: int, rank: int, stream: int) -> int:
     return int(np.random.SeedSequence([seed, step, rank, stream]).generate_state(1)[0])
-
-
-class EMA:
-    """Exponential moving average of the weights with Diffusion Policy's warm-up of the decay:
-    decay(k) = min(max_decay, 1 - (1 + k) ** -power), so early averages are short and later ones long."""
-
-    def __init__(self, model: torch.nn.Module, power: float = 0.75, max_decay: float = 0.9999):
-        self.model = copy.deepcopy(model).eval().requires_grad_(False)
-        self.power, self.max_decay, self.updates = power, max_decay, 0
-
-    def decay(self) -> float:
-        return 0.0 if self.updates == 0 else min(self.max_decay, 1 - (1 + self.updates) ** -self.power)
-
-    @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
-        d = self.decay()
-        ours = list(self.model.parameters())
-        # one fused kernel per op for all tensors: a per-tensor loop is ~2 launches per parameter on a GPU
-        torch._foreach_mul_(ours, d)
-        torch._foreach_add_(ours, [p.detach() for p in model.parameters()], alpha=1 - d)
-        for e, b in zip(self.model.buffers(), model.buffers()):
-            e.copy_(b)
-        self.updates += 1
-
-    def state_dict(self) -> dict:
-        return {"model": self.model.state_dict(), "updates": self.updates}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.model.load_state_dict(state["model"])
-        self.updates = state["updates"]
 
 
 def lr_factor(step: int, warmup: int, total: int) -> float:
@@ -207,7 +178,7 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
         normalizer = warm_start.source_normalizer(init_from)
     split = "train" if cfg.val_fraction > 0 else None
     ds = PolicyDataset(data_dir, cfg, train=True, normalizer=normalizer, embedder=embedder, uint8_images=True,
-                       split=split)
+                       split=split, read_images=not cfg.feature_cache)
     info = ds.info()
     validator = None
     if split and rank == 0:  # streamed from the store (max_cache_bytes=0): a few hundred samples per check
@@ -232,6 +203,12 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
         for name in warm_start.PRETRAINED:
             model.get_submodule(name).requires_grad_(False)
     model = model.to(dev)
+    table = None
+    if cfg.feature_cache:  # the frozen encoders' output, once (policy.feature_cache)
+        reader = PolicyDataset(data_dir, cfg, train=False, normalizer=ds.normalizer, embedder=embedder,
+                               split=split, max_cache_bytes=0)
+        table = image_feature_table(model, reader, cfg.feature_cache, seed=cfg.seed, device=dev,
+                                    progress=progress and rank == 0)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=cfg.betas,
                             weight_decay=cfg.weight_decay)
@@ -267,7 +244,11 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     amp = cfg.amp and dev.type == "cuda"
     try:
         for k, batch in enumerate(loader, start):
-            batch = finish_images(to_device(batch, dev))
+            batch = to_device(batch, dev)
+            if table is None:
+                batch = finish_images(batch)
+            else:
+                batch["image_features"] = table[batch.pop("frames")]
             g = torch.Generator().manual_seed(step_seed(cfg.seed, k, rank, 1))
             noise = torch.randn(batch["action"].shape, generator=g).to(dev)
             t = torch.randint(0, cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(dev)
