@@ -229,7 +229,8 @@ class PolicyDataset(torch.utils.data.Dataset):
                              f"{tuple(self.cfg.image_size)}")
         return frames
 
-    def _frames(self, k: int, camera: str, idx: np.ndarray) -> np.ndarray:
+    def episode_frames(self, k: int, camera: str, idx: np.ndarray) -> np.ndarray:
+        """Frames idx of the k-th used episode's camera, (len(idx), H, W, 3) uint8 (from memory or the store)."""
         if self.images is not None:
             return self.images[k][camera][idx]
         lo, hi = int(idx.min()), int(idx.max()) + 1
@@ -245,23 +246,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         cfg, T = self.cfg, self.lengths[k]
         obs = np.clip(np.arange(s, s + cfg.obs_horizon), 0, T - 1)
         act = np.clip(np.arange(s, s + cfg.pred_horizon), 0, T - 1)
-        images = {}
-        jitter = jitter_factors(rng, cfg.color_jitter if self.train else 0.0) if self.read_images else None
-        for camera in cfg.cameras if self.read_images else ():
-            frames = self._frames(k, camera, obs)
-            if self.train:
-                H, W = frames.shape[1:3]
-                top, left = int(rng.integers(0, H - cfg.crop_size[0] + 1)), int(rng.integers(0, W - cfg.crop_size[1] + 1))
-                frames = crop(frames, cfg.crop_size, top, left)
-            else:
-                frames = crop(frames, cfg.crop_size)
-            # contiguous NCHW: the same memory layout (hence the same conv kernels, bit for bit) whether a
-            # batch is collated here or in a DataLoader worker's shared memory
-            x = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))
-            if not self.uint8_images:
-                x = x.float() / 255.0
-                x = color_jitter(x, torch.from_numpy(jitter)) if self.train else x
-            images[camera] = x
+        images, jitter = self._images(k, obs, rng) if self.read_images else (None, None)
         text = self.instructions[k]
         now = int(obs[-1])
         if self.train and cfg.subtask_language_prob > 0 and rng.random() < cfg.subtask_language_prob:
@@ -281,6 +266,28 @@ class PolicyDataset(torch.utils.data.Dataset):
         if self.uint8_images:
             out["jitter"] = torch.from_numpy(jitter)
         return out
+
+    def _images(self, k: int, obs: np.ndarray, rng: np.random.Generator) -> tuple[dict, np.ndarray]:
+        """A sample's images {camera: (To, 3, h, w)} (cropped; jittered unless uint8_images) and the jitter."""
+        cfg = self.cfg
+        images = {}
+        jitter = jitter_factors(rng, cfg.color_jitter if self.train else 0.0)
+        for camera in cfg.cameras:
+            frames = self.episode_frames(k, camera, obs)
+            if self.train:
+                H, W = frames.shape[1:3]
+                top, left = int(rng.integers(0, H - cfg.crop_size[0] + 1)), int(rng.integers(0, W - cfg.crop_size[1] + 1))
+                frames = crop(frames, cfg.crop_size, top, left)
+            else:
+                frames = crop(frames, cfg.crop_size)
+            # contiguous NCHW: the same memory layout (hence the same conv kernels, bit for bit) whether a
+            # batch is collated here or in a DataLoader worker's shared memory
+            x = torch.from_numpy(np.ascontiguousarray(frames.transpose(0, 3, 1, 2)))
+            if not self.uint8_images:
+                x = x.float() / 255.0
+                x = color_jitter(x, torch.from_numpy(jitter)) if self.train else x
+            images[camera] = x
+        return images, jitter
 
     def aux_target(self, index: int) -> torch.Tensor:
         """The sample's auxiliary target (6,) in the config's `aux_target_frame`, without reading images."""

@@ -39,7 +39,7 @@ def image_feature_table(model: DiffusionPolicy, ds: PolicyDataset, copies: int, 
     for k, episode in enumerate(ds.episodes):
         T, first = ds.lengths[k], int(ds.frame_offset[k])
         text = ds.text_table[ds.text_row[ds.instructions[k]]].to(device)
-        frames = {c: ds._frames(k, c, np.arange(T)) for c in cfg.cameras}  # (T, H, W, 3) uint8
+        frames = {c: ds.episode_frames(k, c, np.arange(T)) for c in cfg.cameras}  # (T, H, W, 3) uint8
         for copy in range(copies):
             rng = np.random.default_rng([seed, int(episode), copy])
             for lo in range(0, T, batch):

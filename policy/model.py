@@ -278,8 +278,7 @@ class DiffusionPolicy(nn.Module):
         """The obs encoder's features (B, G') -> the denoiser's global cond at inference (B, G)."""
         if not self.cfg.aux_condition:
             return features
-        shown = features if self.cfg.image_cond_dropout < 1 else self.hide_images(features, torch.zeros(1, 1))
-        return torch.cat([shown, self.aux_points(features)], dim=1)
+        return torch.cat([self.shown_features(features), self.aux_points(features)], dim=1)
 
     def aux_points(self, features: torch.Tensor) -> torch.Tensor:
         """The aux head's grasp and release points (B, AUX_DIM) from the obs encoder's features (not from a
@@ -307,9 +306,7 @@ class DiffusionPolicy(nn.Module):
         cond = features
         if self.cfg.aux_condition:
             fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
-            if image_keep is None:
-                image_keep = torch.full((1,), float(self.cfg.image_cond_dropout < 1))
-            cond = torch.cat([self.hide_images(features, image_keep.view(-1, 1).to(features)), fed], dim=1)
+            cond = torch.cat([self.shown_features(features, image_keep), fed], dim=1)
         loss = F.mse_loss(self.predict_added_noise(cond, batch["action"], noise, timesteps), noise)
         if self.aux_head is not None:
             loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_points(features), batch["aux"])
@@ -321,9 +318,19 @@ class DiffusionPolicy(nn.Module):
         ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
         return self(ab.sqrt() * action + (1 - ab).sqrt() * noise, timesteps, cond)
 
+    def shown_features(self, features: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """The obs encoder's features as the denoiser sees them: images hidden where keep ((B,) of 0/1) is 0;
+        keep None = inference, which hides them only when image_cond_dropout is 1."""
+        if keep is None:
+            if self.cfg.image_cond_dropout < 1:
+                return features
+            keep = torch.zeros(1)
+        return self.hide_images(features, keep)
+
     def hide_images(self, features: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
-        """Every observation step's camera features times keep ((B, 1) or (1, 1) of 0/1); the proprio and
-        text features pass unchanged."""
+        """Every observation step's camera features times keep ((B,) or (1,) of 0/1, or that shape with a
+        trailing 1); the proprio and text features pass unchanged."""
+        keep = keep.reshape(-1, 1).to(features)
         cfg = self.cfg
         width = len(cfg.cameras) * cfg.image_feature_dim
         per_step = width + cfg.proprio_feature_dim

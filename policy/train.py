@@ -205,9 +205,7 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     model = model.to(dev)
     table = None
     if cfg.feature_cache:  # the frozen encoders' output, once (policy.feature_cache)
-        reader = PolicyDataset(data_dir, cfg, train=False, normalizer=ds.normalizer, embedder=embedder,
-                               split=split, max_cache_bytes=0)
-        table = image_feature_table(model, reader, cfg.feature_cache, seed=cfg.seed, device=dev,
+        table = image_feature_table(model, ds, cfg.feature_cache, seed=cfg.seed, device=dev,
                                     progress=progress and rank == 0)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr, betas=cfg.betas,

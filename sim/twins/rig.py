@@ -17,10 +17,11 @@ Protective stop (as the UR safety system): two robot parts colliding (arm link w
 gripper; the gripper's own linkage is exempt), or any other robot contact pressing harder than
 `force_limit_n`, be it on something welded to the world (table, floor, bins) or on a movable object (finger
 pads on movable objects are exempt: that is a grasp). Like the real arm's force limit, a graze is not a
-stop; a stiff position-controlled arm driven into the table builds the limit within millimetres. The arm then holds the position it had, commands return
-False, and `unlock_protective_stop()` succeeds only `unlock_delay_s` after the stop. Contacts present at
-unlock (or at start-up) are forgiven until they separate, so the arm can be moved away. Note the scene's walls have no
-collision geometry (contype 0), so they cannot trigger a stop.
+stop; a stiff position-controlled arm driven into the table builds the limit within millimetres. The arm
+then holds the position it had, commands return False, and `unlock_protective_stop()` succeeds only
+`unlock_delay_s` after the stop. Contacts present at unlock (or at start-up) are forgiven until they
+separate, so the arm can be moved away. Note the scene's walls have no collision geometry (contype 0), so
+they cannot trigger a stop.
 """
 
 from __future__ import annotations
@@ -284,8 +285,9 @@ class SimRig:
         if self._grace:
             self._grace &= set(hard) | set(soft)  # a forgiven contact that separated is no longer forgiven
         m, d = self.world.model, self.world.data
-        for pair in sorted(set(hard) - self._grace):
-            self.trigger_protective_stop(f"contact {_geom_name(m, pair[0])} <-> {_geom_name(m, pair[1])}")
+        collided = min(set(hard) - self._grace, default=None)
+        if collided is not None:
+            self.trigger_protective_stop(f"contact {_geom_name(m, collided[0])} <-> {_geom_name(m, collided[1])}")
             return
         f6 = np.zeros(6)
         for pair, contacts in soft.items():
