@@ -56,6 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     pre.add_argument("--config", default="small", help="the policy's preset or TOML file (default small)")
     pre.add_argument("--steps", type=int, required=True, help="optimizer steps")
     pre.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
+    pre.add_argument("--init-from", type=Path, metavar="RUN",
+                     help="go on from an earlier pretrain run on the same --data (its encoders and head; a fresh "
+                          "optimizer and schedule of --steps)")
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
@@ -124,7 +127,8 @@ def _train(args) -> int:
 def _pretrain(args) -> int:
     from policy.pretrain import pretrain
 
-    summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set))
+    summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set),
+                       init_from=args.init_from)
     val = summary["validation"] or {}
     print(json.dumps(summary, indent=2) if args.json else
           f"run {summary['run_dir']}: {summary['views']} views of {summary['scenes']} scenes, loss "

@@ -34,6 +34,7 @@ from policy.plot import plot_metrics
 from policy.ema import EMA
 from policy.train import lr_factor, save_checkpoint
 from policy.validate import Validator
+from policy import warm_start
 from policy.warm_start import PRETRAINED
 
 
@@ -77,8 +78,13 @@ class Views:
 
 def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | PolicyConfig | dict,
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
-             progress: bool = True, embedder=None) -> dict:
-    """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc)."""
+             progress: bool = True, embedder=None, init_from: str | Path | None = None) -> dict:
+    """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
+
+    init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
+    schedule), for a longer pretraining without redoing the first part. It must have been fitted on the
+    same episode dataset, since the head reads normalized proprioception.
+    """
     from tqdm import tqdm
 
     if threads:
@@ -102,6 +108,10 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     views = Views(views_dir, cfg, fit.normalizer, embedder)
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
+    warm = None
+    if init_from is not None:
+        _check_same_stats(init_from, fit.normalizer)
+        warm = warm_start.load_into(model, init_from)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     params = [p for name in PRETRAINED for p in model.get_submodule(name).parameters()]
     opt = torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
@@ -116,6 +126,8 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     fit.normalizer.save(run_dir / "stats.npz")
     info = dict(fit.info(), pretrain={"views": str(views_dir), "view_count": len(views), "scenes": views.scenes})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
+    if warm is not None:
+        warm_start.write_record(run_dir, warm)
     metrics = run_dir / "metrics.jsonl"
     metrics.write_text("")
     rng = np.random.default_rng(cfg.seed)
@@ -145,9 +157,21 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
     checks = [r for r in rows if "val_loss" in r]
     losses = [r["loss"] for r in rows if "loss" in r]
-    summary = {"run_dir": str(run_dir), "step": steps, "views": len(views), "scenes": views.scenes,
+    summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"], "views": len(views), "scenes": views.scenes,
                "params": count_params(model), "checkpoint": str(checkpoint), "final_loss": losses[-1],
                "validation": checks[-1] if checks else None,
                "plot": str(plot_metrics(metrics, run_dir / "metrics.png"))}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _check_same_stats(source_run: str | Path, normalizer) -> None:
+    info = Path(source_run) / "dataset.json"
+    if not info.is_file() or "pretrain" not in json.loads(info.read_text()):
+        raise ValueError(f"--init-from {source_run}: not a `sudd pretrain` run (its dataset.json has no 'pretrain'); "
+                         "go on from a pretrain run, or start afresh")
+    old = warm_start.source_normalizer(source_run)
+    new = normalizer.to_dict()
+    if not all(np.allclose(v, new[k]) for k, v in old.to_dict().items()):
+        raise ValueError(f"--init-from {source_run}: it was fitted on other episodes (its stats.npz differs from "
+                         "this --data's); pretrain on the same --data, or start afresh")

@@ -92,3 +92,36 @@ def test_pretraining_fits_the_views_and_a_policy_run_starts_from_it(views_dir, t
     with pytest.raises(ValueError, match="views are"):
         pretrain(views_dir, data, dict(TINY, image_size=[64, 64], crop_size=[56, 56]), tmp_path / "bad", 1, over,
                  threads=1, progress=False, embedder=hash_embedder)
+
+
+def test_pretraining_goes_on_from_an_earlier_run_on_the_same_episodes_only(views_dir, tmp_path):
+    from policy.pretrain import pretrain
+    from policy.testing import TINY, hash_embedder, synthetic_dataset
+
+    data = synthetic_dataset(tmp_path / "data", episodes=4, smooth=True)
+    over = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "lr": 3e-3, "warmup_steps": 1, "log_every": 5,
+            "color_jitter": 0.0}
+
+    def run(out, steps, lr, **kw):
+        s = pretrain(views_dir, data, dict(TINY), out, steps, {**over, "lr": lr}, threads=1, progress=False,
+                     embedder=hash_embedder, **kw)
+        return torch.load(s["checkpoint"], weights_only=False)["ema"]["model"], s
+
+    name = "obs_encoder.images.scene.stem.0.weight"
+    first, _ = run(tmp_path / "pre", 20, 3e-3)
+    # with a vanishing learning rate a run keeps the weights it starts from: the earlier run's, not new ones
+    kept, on = run(tmp_path / "on", 2, 1e-12, init_from=tmp_path / "pre")
+    fresh, _ = run(tmp_path / "fresh", 2, 1e-12)
+    torch.testing.assert_close(kept[name], first[name])
+    torch.testing.assert_close(kept["aux_head.0.weight"], first["aux_head.0.weight"])
+    assert not torch.allclose(fresh[name], first[name])
+    assert on["init_from"] == str(tmp_path / "pre")
+    assert json.loads((tmp_path / "on" / "warm_start.json").read_text())["step"] == 20
+    other = synthetic_dataset(tmp_path / "other", episodes=7, smooth=True)
+    with pytest.raises(ValueError, match="fitted on other episodes"):
+        pretrain(views_dir, other, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
+                 embedder=hash_embedder, init_from=tmp_path / "pre")
+    (tmp_path / "pre" / "dataset.json").write_text("{}")
+    with pytest.raises(ValueError, match="not a `sudd pretrain` run"):
+        pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
+                 embedder=hash_embedder, init_from=tmp_path / "pre")
