@@ -1,7 +1,14 @@
 """Placement sampling: where the held object can be released on or in a target, and the TCP pose for it.
 
-Targets: a container with a `{name}/inside` box site (bins, the drawer: release over the cavity floor), the
-`table` (anywhere free in the task area), or another object (stacking: near the centre of its top face).
+Targets: a container with a `{name}/inside` box site (bins, boxes, the drawer), the `table` (anywhere free in
+the task area), or another object (stacking: near the centre of its top face).
+
+A container's object is let go over its rim, near the middle, and falls in; only where nothing over the rim
+is free (the drawer, under its cabinet) is it lowered to just over the cavity floor. Why: a release down in
+the cavity leaves the open fingers a centimetre or two from the walls, so any policy that learns from these
+demonstrations with a few centimetres of error presses a finger into a wall (the sim twin's protective stop
+ended most episodes of the first distilled policies that way); over the rim the same error still drops the
+object in, and the fingers never enter the container.
 The object keeps its current up-axis and turns by a sampled yaw; the TCP pose follows from the grasp
 transform (object in the TCP frame, measured when it was grasped), so any grasp, tilted or not, places
 the object upright. Candidates must fit the region's footprint, be reachable, and leave the arm and the
@@ -21,6 +28,8 @@ from sim.robot import GRIPPER_MAX_DRIVER
 from sim.scene import TABLE_TOP_Z, TASK_AREA
 
 DROP = {"container": 0.015, "table": 0.006, "stack": 0.006}  # release height of the object's bottom
+RIM_CLEARANCE = 0.02  # an object let go over a container's rim clears it by this much
+OVER_RIM_SPREAD = 0.25  # over-the-rim releases stay within this share of the cavity's half extents
 RELEASE_OPENINGS = (0.0, 0.25, 0.45)
 
 
@@ -42,6 +51,7 @@ class Region:
     axes: np.ndarray  # (2, 3)
     half: np.ndarray  # (2,)
     kind: str
+    rim: float | None = None  # a container's top edge (world z)
 
 
 def _rz(a: float) -> np.ndarray:
@@ -86,7 +96,8 @@ def target_region(model, data, target: str) -> Region:
         R = data.site_xmat[sid].reshape(3, 3)
         half = model.site_size[sid]
         floor = data.site_xpos[sid] - R[:, 2] * half[2]
-        return Region(floor, R[:, :2].T.copy(), half[:2].copy(), "container")
+        rim = float(data.site_xpos[sid][2] + abs(R[2, 2]) * half[2])
+        return Region(floor, R[:, :2].T.copy(), half[:2].copy(), "container", rim)
     if target == "table":
         (x0, x1), (y0, y1) = TASK_AREA
         return Region(np.array([(x0 + x1) / 2, (y0 + y1) / 2, TABLE_TOP_Z]), np.eye(3)[:2],
@@ -123,16 +134,24 @@ class PlaceSampler:
     def sample(self, held: Held, target: str, q_now, rng, k: int = 3, n: int = 200,
                evaluate: int = 40) -> list[PlacePose]:
         """Up to k validated release poses for the held object on/in `target` (checker must be synced)."""
-        m, d = self.world.model, self.world.data
-        region = target_region(m, d, target)
-        T_tcp_now = self.kin.fk(q_now)
-        R_obj_now = _upright((T_tcp_now @ held.T_tcp_obj)[:3, :3])
+        region = target_region(self.world.model, self.world.data, target)
+        heights = [] if region.rim is None else [(region.rim + RIM_CLEARANCE, OVER_RIM_SPREAD)]
+        heights.append((region.centre[2] + DROP[region.kind], 1.0))
+        for bottom, spread in heights:
+            cands = self._candidates(held, region, q_now, rng, n, bottom, spread)
+            out = self._validated(held, cands, q_now, k, evaluate)
+            if out:
+                return out
+        return []
+
+    def _candidates(self, held: Held, region: Region, q_now, rng, n: int, bottom: float,
+                    spread: float) -> list[tuple[float, np.ndarray]]:
+        """(score, TCP pose) for n sampled releases with the object's bottom at height `bottom`, within
+        `spread` of the region's half extents (and inside a container's walls), lowest score first."""
+        R_obj_now = _upright((self.kin.fk(q_now) @ held.T_tcp_obj)[:3, :3])
         corners = self._object_corners(held.body)
         T_obj_tcp = np.linalg.inv(held.T_tcp_obj)
         margin = 0.006  # clearance to container walls
-        # The release must open the fingers clearly wider than they are around the object now.
-        closure = 1.0 if held.gripper_qpos is None else float(held.gripper_qpos[0]) / GRIPPER_MAX_DRIVER
-        openings = [o for o in RELEASE_OPENINGS if o < closure - 0.15] or [0.0]
         cands = []
         # Half the yaws square the object with the region (boxes fit bins and drawers that way), half are free.
         heading = np.arctan2(R_obj_now[1, 0], R_obj_now[0, 0])
@@ -144,7 +163,7 @@ class PlaceSampler:
                 yaw = _wrap(square + rng.integers(4) * np.pi / 2 + rng.normal(0.0, 0.05))
             R = _rz(yaw) @ R_obj_now
             w = corners @ R.T  # corner offsets from the body origin, world-aligned
-            uv = rng.uniform(-1.0, 1.0, 2) * region.half
+            uv = rng.uniform(-1.0, 1.0, 2) * region.half * spread
             xy = region.centre + uv @ region.axes
             foot = w @ region.axes.T  # corners in the region's plane coordinates
             lo_uv, hi_uv = uv + foot.min(axis=0), uv + foot.max(axis=0)
@@ -153,13 +172,20 @@ class PlaceSampler:
                 continue
             T_obj = np.eye(4)
             T_obj[:3, :3] = R
-            T_obj[:3, 3] = [xy[0], xy[1], region.centre[2] + DROP[region.kind] - w[:, 2].min()]
-            T = T_obj @ T_obj_tcp
+            T_obj[:3, 3] = [xy[0], xy[1], bottom - w[:, 2].min()]
             score = float(np.linalg.norm(uv / np.maximum(region.half, 1e-3))) * 0.3 + 0.2 * abs(yaw) \
                 + rng.uniform(0.0, 0.2)
-            cands.append((score, T))
+            cands.append((score, T_obj @ T_obj_tcp))
+        return sorted(cands, key=lambda c: c[0])
+
+    def _validated(self, held: Held, cands, q_now, k: int, evaluate: int) -> list[PlacePose]:
+        """The first k candidates (of the best `evaluate`) that are reachable, collision-free, and have a
+        gripper opening that lets go without touching anything."""
+        # The release must open the fingers clearly wider than they are around the object now.
+        closure = 1.0 if held.gripper_qpos is None else float(held.gripper_qpos[0]) / GRIPPER_MAX_DRIVER
+        openings = [o for o in RELEASE_OPENINGS if o < closure - 0.15] or [0.0]
         out = []
-        for score, T in sorted(cands, key=lambda c: c[0])[:evaluate]:
+        for score, T in cands[:evaluate]:
             T_pre = T.copy()
             T_pre[2, 3] += self.approach
             try:

@@ -154,10 +154,17 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
     return shards
 
 
-def load(views_dir: str | Path) -> dict:
-    """Every shard of a views directory, concatenated."""
+def load(views_dir: str | Path, offsets: dict | None = None) -> dict:
+    """Every shard of a views directory, concatenated. With `offsets` (measure_offsets of the episodes a policy
+    trains on), the labels are moved from the offsets each shard was rendered with to these: the images depend
+    on the grasp point only through the sampled arm poses, so the same views serve data whose demonstrations
+    release elsewhere (over a bin's rim instead of down in it)."""
     paths = sorted(Path(views_dir).glob("views_*.npz"))
     if not paths:
         raise FileNotFoundError(f"{views_dir}: no views_*.npz shards (make them with datagen.views)")
     parts = [dict(np.load(p)) for p in paths]
+    if offsets is not None:
+        for p in parts:
+            shift = np.stack([offsets["grasp"] - p["offset_grasp"], offsets["release"] - p["offset_release"]])
+            p["points"] = (p["points"] + shift).astype(p["points"].dtype)
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if not k.startswith("offset_")}

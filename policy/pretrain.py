@@ -7,8 +7,10 @@ pretraining can show them thousands of scenes first. The policy run then starts 
 
 A view is one instant, while the policy sees To observation steps: each view fills all To steps (the arm at
 rest, as at an episode's first step). Labels are the aux target of policy.data in the "tcp" frame (the
-grasp and release points relative to the gripper, over AUX_TCP_SCALE). Augmentation is the policy's: one
-random crop per camera and sample, colour jitter.
+grasp and release points relative to the gripper, over AUX_TCP_SCALE), relabelled with the grasp and release
+offsets measured on --data (datagen.views.load), so one set of views serves datasets whose demonstrations
+grasp or release differently. Augmentation is the policy's: one random crop per camera and sample, colour
+jitter.
 
 The run directory is an ordinary one (config.json, stats.npz fitted on the episode dataset exactly as
 training would fit it, dataset.json, checkpoints/, metrics.jsonl and metrics.png). With `val_fraction` > 0
@@ -27,6 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from datagen.views import load as load_views
+from datagen.views import measure_offsets
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, color_jitter, crop, jitter_factors, relative_to_tcp
 from policy.model import DiffusionPolicy, count_params
@@ -41,8 +44,8 @@ from policy.warm_start import PRETRAINED
 class Views:
     """Rendered views as training batches (everything in memory, uint8 images)."""
 
-    def __init__(self, views_dir: str | Path, cfg: PolicyConfig, normalizer, embedder):
-        v = load_views(views_dir)
+    def __init__(self, views_dir: str | Path, cfg: PolicyConfig, normalizer, embedder, offsets: dict | None = None):
+        v = load_views(views_dir, offsets)
         if v["scene"].shape[1:3] != tuple(cfg.image_size):
             raise ValueError(f"{views_dir}: views are {v['scene'].shape[1:3]} pixels, the config expects "
                              f"{tuple(cfg.image_size)}; render them at the policy's image_size")
@@ -82,8 +85,8 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
-    schedule), for a longer pretraining without redoing the first part. It must have been fitted on the
-    same episode dataset, since the head reads normalized proprioception.
+    schedule), for a longer pretraining without redoing the first part. Its --data may differ: the head reads
+    the images and the instruction only, and the views are relabelled for this --data (module doc).
     """
     from tqdm import tqdm
 
@@ -105,12 +108,16 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
         val = PolicyDataset(data_dir, cfg, train=False, normalizer=fit.normalizer, embedder=embedder,
                             uint8_images=True, split="val", max_cache_bytes=0)
         validator = Validator(val, fit, seed=cfg.seed)
-    views = Views(views_dir, cfg, fit.normalizer, embedder)
+    offsets = measure_offsets(data_dir)
+    views = Views(views_dir, cfg, fit.normalizer, embedder, offsets)
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
     warm = None
     if init_from is not None:
-        _check_same_stats(init_from, fit.normalizer)
+        info = Path(init_from) / "dataset.json"
+        if not info.is_file() or "pretrain" not in json.loads(info.read_text()):
+            raise ValueError(f"--init-from {init_from}: not a `sudd pretrain` run (its dataset.json has no "
+                             "'pretrain'); go on from a pretrain run, or start afresh")
         warm = warm_start.load_into(model, init_from)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     params = [p for name in PRETRAINED for p in model.get_submodule(name).parameters()]
@@ -124,7 +131,8 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     fit.normalizer.save(run_dir / "stats.npz")
-    info = dict(fit.info(), pretrain={"views": str(views_dir), "view_count": len(views), "scenes": views.scenes})
+    info = dict(fit.info(), pretrain={"views": str(views_dir), "view_count": len(views), "scenes": views.scenes,
+                                      "offsets_m": {k: np.round(offsets[k], 4).tolist() for k in ("grasp", "release")}})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
@@ -164,14 +172,3 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
-
-def _check_same_stats(source_run: str | Path, normalizer) -> None:
-    info = Path(source_run) / "dataset.json"
-    if not info.is_file() or "pretrain" not in json.loads(info.read_text()):
-        raise ValueError(f"--init-from {source_run}: not a `sudd pretrain` run (its dataset.json has no 'pretrain'); "
-                         "go on from a pretrain run, or start afresh")
-    old = warm_start.source_normalizer(source_run)
-    new = normalizer.to_dict()
-    if not all(np.allclose(v, new[k]) for k, v in old.to_dict().items()):
-        raise ValueError(f"--init-from {source_run}: it was fitted on other episodes (its stats.npz differs from "
-                         "this --data's); pretrain on the same --data, or start afresh")
