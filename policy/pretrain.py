@@ -36,8 +36,8 @@ from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
 from policy.ema import EMA
 from policy.train import lr_factor, save_checkpoint
-from policy.validate import Validator
 from policy import warm_start
+from policy.validate import Validator
 from policy.warm_start import PRETRAINED
 
 
@@ -131,8 +131,9 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     fit.normalizer.save(run_dir / "stats.npz")
+    offsets_m = {k: np.round(offsets[k], 4).tolist() for k in ("grasp", "release")}
     info = dict(fit.info(), pretrain={"views": str(views_dir), "view_count": len(views), "scenes": views.scenes,
-                                      "offsets_m": {k: np.round(offsets[k], 4).tolist() for k in ("grasp", "release")}})
+                                      "offsets_m": offsets_m})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
@@ -165,10 +166,10 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
     checks = [r for r in rows if "val_loss" in r]
     losses = [r["loss"] for r in rows if "loss" in r]
-    summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"], "views": len(views), "scenes": views.scenes,
+    summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"],
+               "views": len(views), "scenes": views.scenes,
                "params": count_params(model), "checkpoint": str(checkpoint), "final_loss": losses[-1],
                "validation": checks[-1] if checks else None,
                "plot": str(plot_metrics(metrics, run_dir / "metrics.png"))}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
-
