@@ -15,7 +15,7 @@ import numpy as np
 
 from datagen.plan import PRIMITIVES, describe
 from datagen.planner import make_planner
-from datagen.primitives import PrimitiveFailed, Primitives
+from datagen.primitives import GRASP_SECONDS, PrimitiveFailed, Primitives
 from datagen.recorder import Recorder
 from datagen.sandbox import SandboxError, run_check
 from datagen.schema import IMAGE_SIZE, EpisodeData
@@ -49,6 +49,9 @@ class DatagenConfig:
     perturb: float = field(default=0.0, metadata=spec(0.0, 1.0,
                            doc="probability that a place is disturbed (the object dropped on the way), so the "
                                "data holds recoveries; 0 leaves episodes exactly as without it"))
+    perturb_grasp: float = field(default=0.0, metadata=spec(0.0, 1.0,
+                                 doc="probability that a pick's gripper closes early, above the object (a "
+                                     "missed grasp), so the data holds regrasps; 0 leaves episodes unchanged"))
     holdout_colors: tuple[str, ...] = field(default=(), metadata=spec(choices=OBJECT_COLORS,
                                             doc="object colours never used (kept for a held-out evaluation)"))
     holdout_shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES,
@@ -62,6 +65,17 @@ def _dropped(motion: Motion, rng: np.random.Generator) -> Motion:
     """The place motion cut 10-40 % of the way (in transit), where the gripper lets go (a slip or a bump)."""
     cut = motion.truncated(motion.duration * rng.uniform(0.1, 0.4))
     cut.append(Segment.hold(cut.final_q, 0.6, 0.0, "perturbation"))
+    return cut
+
+
+def _missed(motion: Motion, rng: np.random.Generator) -> Motion:
+    """The pick motion cut 50-90 % of the way (in time) down its approach, where the gripper closes on air a
+    few centimetres above the grasp: a misjudged grasp, the distilled policies' commonest failure. The data
+    then shows what follows one (open, back off, grasp again), not only grasps that work."""
+    i = motion.labels.index("approach")
+    start = sum(s.duration for s in motion.segments[:i])
+    cut = motion.truncated(start + motion.segments[i].duration * rng.uniform(0.5, 0.9))
+    cut.append(Segment.hold(cut.final_q, GRASP_SECONDS, 1.0, "perturbation"))
     return cut
 
 
@@ -107,6 +121,9 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                 if sub.primitive == "place" and cfg.perturb and perturb_rng.random() < cfg.perturb:
                     motion = _dropped(motion, perturb_rng)
                     reason = "perturbed: object dropped during the place"
+                elif sub.primitive == "pick" and cfg.perturb_grasp and perturb_rng.random() < cfg.perturb_grasp:
+                    motion = _missed(motion, perturb_rng)
+                    reason = "perturbed: gripper closed above the object"
                 executed = True
                 execute(world, motion, observer=recorder)
                 ok = run_check(sub.check, state, scene)

@@ -38,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     gen.add_argument("--max-retries", type=int, default=4, help="retries per subtask (default 4)")
     gen.add_argument("--perturb", type=float, default=0.0, metavar="P",
                      help="probability that a place is disturbed (object dropped), so the data holds recoveries")
+    gen.add_argument("--perturb-grasp", type=float, default=0.0, metavar="P",
+                     help="probability that a pick's gripper closes early, above the object (a missed grasp), "
+                          "so the data holds regrasps")
     gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                      help="never use this object colour (repeatable), so `sudd eval --heldout` can test it")
     gen.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
@@ -63,7 +66,8 @@ def _generate(args) -> int:
         return 2
     cfg = load_config(DatagenConfig, {
         "dr": args.dr, "fidelity": args.fidelity, "max_retries": args.max_retries, "label": args.label,
-        "perturb": args.perturb, "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
+        "perturb": args.perturb, "perturb_grasp": args.perturb_grasp,
+        "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
     summary = generate(tasks, args.episodes, args.out, args.workers, partial(run_episode, cfg=cfg),
                        seed_offset=args.seed_offset, ray_address=args.ray)

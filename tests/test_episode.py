@@ -91,6 +91,27 @@ def test_perturbed_place_is_recovered_by_going_back_to_the_pick():
     assert data.subtask.min() >= 0 and (np.diff(data.subtask) < 0).any()
 
 
+def test_missed_grasp_closes_above_the_object_and_is_recovered_by_grasping_again():
+    normal = run_episode("pick_place", 6, FAST)
+    data = run_episode("pick_place", 6, replace(FAST, max_retries=1, perturb_grasp=1.0))
+    attempts = data.meta["attempts"]
+    assert [a["subtask"] for a in attempts] == [0, 0], attempts
+    assert all(a["reason"].startswith("perturbed: gripper closed") for a in attempts)
+    assert not data.meta["success"] and not data.meta["check_success"]
+
+    def first_close(ep):
+        i = int(np.argmax(ep.action[:, -1] > 0.5))
+        return i, float(ep.proprio[i, 2])
+
+    # Same grasp sample (the perturbation draws from its own stream), closed higher up the approach.
+    (i, z_missed), (_, z_grasp) = first_close(data), first_close(normal)
+    assert 0.005 < z_missed - z_grasp < 0.08, (z_missed, z_grasp)
+    # What follows is in the data: the gripper opens again (recovery) and closes for the second try.
+    grip = data.action[i:, -1] > 0.5
+    reopened = int(np.argmax(~grip))
+    assert reopened > 0 and grip[reopened:].any()
+
+
 def test_truncated_motion_keeps_its_start_and_ends_at_the_cut():
     from datagen.trajectory import Motion, Segment
 
