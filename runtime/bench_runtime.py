@@ -10,9 +10,10 @@
   robot node receives it (`obs_to_receive`) -> ControllerLoop.submit accepted it (`obs_to_accepted`, IK
   included). p50/p99 in ms. Target: obs_to_receive p50 <= 50 ms on this CPU.
 
-Default bundle: an untrained `small` policy exported to a temp dir by `make_test_bundle` (in a subprocess:
-the runtime never imports torch), with its action range set around the sim arm's home pose so the chunks
-are executable (small motions near home), and the episode's instruction recorded as trained.
+Default bundle: the shipped one (policy/bundles/demo) once set-up has restored its text encoder; otherwise
+an untrained `small` policy exported to a temp dir by `make_test_bundle` (in a subprocess: the runtime never
+imports torch), with its action range set around the sim arm's home pose so the chunks are executable
+(small motions near home), and the episode's instruction recorded as trained. The JSON names which ran.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import time
 from pathlib import Path
 
 LATENCY_TARGET_P50_MS = 50.0
+SHIPPED_BUNDLE = Path("policy/bundles/demo")
 
 _EXPORT = r"""
 import json, sys
@@ -96,7 +98,9 @@ def run_runtime_bench(quick: bool = False, bundle: str | Path | None = None) -> 
     result["bus_frame_320x240_hop_ms"] = {"p50": bus["hop"][key]["p50_ms"], "p99": bus["hop"][key].get("p99_ms"),
                                           "path": key}
     with tempfile.TemporaryDirectory(prefix="sudd-runtime-bench-") as tmp:
-        if bundle is None:
+        if bundle is None and (SHIPPED_BUNDLE / "text_encoder.onnx").exists():
+            bundle = SHIPPED_BUNDLE  # the issue's latency target is for the policy that ships
+        if bundle is None:  # e.g. a checkout whose set-up has not restored the shipped text encoder
             bundle = make_test_bundle(Path(tmp) / "bundle", [episode_instruction()])
             result["bundle"] = "fresh small (untrained, actions near home)"
         else:
