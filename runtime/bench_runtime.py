@@ -26,8 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from runtime.run_cli import DEFAULT_BUNDLE
+
 LATENCY_TARGET_P50_MS = 50.0
-SHIPPED_BUNDLE = Path("policy/bundles/demo")
 
 _EXPORT = r"""
 import json, sys
@@ -98,9 +99,9 @@ def run_runtime_bench(quick: bool = False, bundle: str | Path | None = None) -> 
     result["bus_frame_320x240_hop_ms"] = {"p50": bus["hop"][key]["p50_ms"], "p99": bus["hop"][key].get("p99_ms"),
                                           "path": key}
     with tempfile.TemporaryDirectory(prefix="sudd-runtime-bench-") as tmp:
-        if bundle is None and (SHIPPED_BUNDLE / "text_encoder.onnx").exists():
-            bundle = SHIPPED_BUNDLE  # the issue's latency target is for the policy that ships
-        if bundle is None:  # e.g. a checkout whose set-up has not restored the shipped text encoder
+        if bundle is None and (DEFAULT_BUNDLE / "text_encoder.onnx").exists():
+            bundle = DEFAULT_BUNDLE  # the latency target is for the policy that ships
+        if bundle is None:  # a checkout whose set-up has not restored the shipped text encoder
             bundle = make_test_bundle(Path(tmp) / "bundle", [episode_instruction()])
             result["bundle"] = "fresh small (untrained, actions near home)"
         else:
