@@ -68,13 +68,16 @@ def bundle_manifest(path) -> dict:
 
 def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "off", command: str = "",
               robot: str = "ur5", **robot_overrides) -> list[NodeSpec]:
-    """robot node (sim twins + cameras matching the bundle) + policy node."""
+    """robot node (sim twins + cameras matching the bundle) + policy node. The scene keeps the bundle's
+    held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do."""
     from runtime.nodes.policy_node import PolicyNodeConfig
     from runtime.nodes.robot_node import RobotNodeConfig
 
     man = bundle_manifest(bundle)
+    held = man.get("data", {}).get("holdout") or {}  # what its training data kept out (as `sudd eval`)
     rcfg = RobotNodeConfig(task=task, seed=seed, dr=dr, cameras=tuple(man["cameras"]),
-                           image_size=tuple(man["image_size"]), **robot_overrides)
+                           image_size=tuple(man["image_size"]), holdout_colors=tuple(held.get("colors", ())),
+                           holdout_shapes=tuple(held.get("shapes", ())), **robot_overrides)
     pcfg = PolicyNodeConfig(bundle=str(bundle), command=command)
     return [NodeSpec(ROBOT, "runtime.nodes.robot_node", rcfg), NodeSpec("policy", "runtime.nodes.policy_node", pcfg)]
 

@@ -87,7 +87,7 @@ def test_sim_render_world_is_bit_identical_and_renders_the_same_image():
     from sim.render import CameraRenderer
     from sim.twins.rig import SimRig
 
-    a, b = _build("pick_place", 0, "off"), _build("pick_place", 0, "off")
+    a, b = _build("pick_place", 0, "off", {}), _build("pick_place", 0, "off", {})
     assert model_digest(a.world.model) == model_digest(b.world.model)
     rig = SimRig(a.world, "lockstep")
     rig.arm.servo_j(np.asarray(rig.arm.state().q) + 0.05)
@@ -112,3 +112,29 @@ def test_sim_render_world_is_bit_identical_and_renders_the_same_image():
     finally:
         ra.close()
         rb.close()
+
+
+def test_sim_run_builds_the_scene_sudd_eval_runs_for_the_same_seed(tmp_path):
+    """The bundle's training data kept purple objects out, so `sudd eval`'s seed K never names a purple
+    target; `sudd run --sim --seed K` must build that same scene (not the unrestricted one) in the robot node
+    and in its render process."""
+    import json
+
+    from runtime.launch import sim_stack
+    from runtime.nodes.robot_node import _holdout
+    from runtime.nodes.sim_render import _build, model_digest
+    from sim.build import build_episode
+    from sim.tasks import Holdout
+
+    seed = 100_002  # unrestricted, this seed's target is the purple block
+    assert "purple" in build_episode("pick_place", seed, "heavy", "fast").instruction
+    (tmp_path / "manifest.json").write_text(json.dumps(
+        {"cameras": ["scene", "wrist"], "image_size": [128, 128], "data": {"holdout": {"colors": ["purple"]}}}))
+    robot = sim_stack(str(tmp_path), seed=seed, dr="heavy")[0].config
+    assert robot.holdout_colors == ("purple",) and robot.holdout_shapes == ()
+    assert config_from_dict(RobotNodeConfig, config_to_dict(robot)) == robot  # survives the trip to the node
+    ours = build_episode("pick_place", seed, "heavy", "fast", holdout=_holdout(robot))
+    evals = build_episode("pick_place", seed, "heavy", "fast", holdout=Holdout(colors=("purple",)))
+    assert ours.instruction == evals.instruction and "purple" not in ours.instruction
+    rendered = _build("pick_place", seed, "heavy", {"colors": ["purple"]})
+    assert model_digest(rendered.world.model) == model_digest(ours.world.model)

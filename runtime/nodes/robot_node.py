@@ -54,6 +54,10 @@ class RobotNodeConfig:
     task: str = "pick_place"
     seed: int = 0
     dr: str = "off"
+    # Colours/shapes never made the target (sim.tasks.Holdout): the policy's training data kept them out
+    # (`sudd datagen --holdout-color`), so `sudd run --sim --seed K` builds the scene `sudd eval` runs as seed K.
+    holdout_colors: tuple[str, ...] = ()
+    holdout_shapes: tuple[str, ...] = ()
     cameras: tuple[str, ...] = ("scene", "wrist")  # the bundle's camera names (sim cameras to publish)
     image_size: tuple[int, int] = (128, 128)  # (H, W) of the sim cameras
     camera_fps: float = 20.0  # twice the policy rate: the policy always finds a frame a few ms old
@@ -74,6 +78,12 @@ class RobotNodeConfig:
 
 
 CONFIG = RobotNodeConfig
+
+
+def _holdout(cfg: RobotNodeConfig):
+    from sim.tasks import Holdout
+
+    return Holdout(colors=tuple(cfg.holdout_colors), shapes=tuple(cfg.holdout_shapes))
 
 
 def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
@@ -121,8 +131,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
 
                 render = SimRenderProcess(cfg.bus, cfg.task, cfg.seed, cfg.dr,
                                           {name: SIM_CAMERAS[name] for name in cfg.cameras}, cfg.image_size,
-                                          cfg.camera_fps)
-            episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast")
+                                          cfg.camera_fps, holdout=_holdout(cfg))
+            episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast", holdout=_holdout(cfg))
             rig = SimRig(episode.world, "realtime")
             raw_arm, gripper = rig.arm, rig.gripper
             variant = episode.world.variant.name

@@ -1,7 +1,7 @@
 """sim_render: the sim cameras of `sudd run --sim`, rendered in their own process (off the robot node's GIL).
 
 The robot node starts this process (`SimRenderProcess`) with the episode's (task, seed, dr); it builds the
-same episode world (`build_episode(task, seed, dr, "fast")`: a bit-identical model, checked by a digest
+same episode world (`build_episode(task, seed, dr, "fast", holdout)`: a bit-identical model, checked by a digest
 at start-up), then waits for physics snapshots. The robot node's snapshot thread copies the rig's state at
 the camera rate (`mj_getState(..., mjSTATE_INTEGRATION)` under the rig lock, a few microseconds) and sends it
 with its time (the rig's `sample_ns`: the monotonic time of that physics state, as SimCamera stamps it)
@@ -55,10 +55,12 @@ def model_digest(model) -> str:
     return h.hexdigest()
 
 
-def _build(task: str, seed: int, dr: str):
+def _build(task: str, seed: int, dr: str, holdout: dict):
     from sim.build import build_episode
+    from sim.tasks import Holdout
 
-    return build_episode(task, seed, dr, "fast")
+    return build_episode(task, seed, dr, "fast", holdout=Holdout(colors=tuple(holdout.get("colors", ())),
+                                                                    shapes=tuple(holdout.get("shapes", ()))))
 
 
 def serve(cfg: dict, conn) -> None:
@@ -84,7 +86,7 @@ def serve(cfg: dict, conn) -> None:
         from runtime.nodes.common import BusSettings, config_from_dict, percentiles
         from sim.render import CameraRenderer
 
-        episode = _build(cfg["task"], int(cfg["seed"]), cfg["dr"])
+        episode = _build(cfg["task"], int(cfg["seed"]), cfg["dr"], cfg.get("holdout", {}))
         model = episode.world.model
         data = mujoco.MjData(model)  # our own copy of the world, set from the snapshots
         spec = state_spec()
@@ -156,7 +158,7 @@ class SimRenderProcess:
     """Robot-node side: start the renderer process, check its world, feed it snapshots at the camera rate."""
 
     def __init__(self, bus_settings, task: str, seed: int, dr: str, cameras: dict[str, str],
-                 image_size: tuple[int, int], fps: float):
+                 image_size: tuple[int, int], fps: float, holdout=None):
         import multiprocessing as mp
 
         from runtime.nodes.common import config_to_dict
@@ -164,7 +166,8 @@ class SimRenderProcess:
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=True)
         cfg = {"bus": config_to_dict(bus_settings), "task": task, "seed": int(seed), "dr": dr,
-               "cameras": dict(cameras), "image_size": list(image_size)}
+               "cameras": dict(cameras), "image_size": list(image_size),
+               "holdout": {"colors": list(holdout.colors), "shapes": list(holdout.shapes)} if holdout else {}}
         self.proc = ctx.Process(target=serve, args=(cfg, child), name="sudd-sim-render", daemon=True)
         self.proc.start()
         child.close()
