@@ -138,8 +138,9 @@ def _codec_us(msg: m.Message, reps: int) -> dict:
     return {"bytes": len(data), "encode_us": round(enc * 1e6, 1), "decode_us": round(dec * 1e6, 1)}
 
 
-def run_bus_bench(quick: bool = False) -> dict:
-    """Measure hop latencies and codec costs; returns a JSON-able dict (milliseconds unless named)."""
+def run_bus_bench(quick: bool = False, frame_only: bool = False) -> dict:
+    """Measure hop latencies and codec costs; returns a JSON-able dict (milliseconds unless named).
+    `frame_only`: just the two unpaced frame hops the target is on (for `sudd bench runtime`)."""
     runs, n, warmup = (1, 40, 10) if quick else (5, 300, 30)
     t_start = time.perf_counter()
     frame, state, chunk = _frame(), _robot_state(), _chunk()
@@ -149,6 +150,8 @@ def run_bus_bench(quick: bool = False) -> dict:
              "robot_state": (True, ARM_STATE, state, 0.0),
              "robot_state_paced_10ms": (True, ARM_STATE, state, 0.010),
              "action_chunk_16": (True, POLICY_CHUNK, chunk, 0.0)}
+    if frame_only:
+        cases = {k: v for k, v in cases.items() if k in ("frame_shm", "frame_copy")}
     result: dict = {"quick": quick, "machine": _machine(), "hop": {}, "codec": {}}
     pairs = {shm: _pair(shm) for shm in (True, False)}
     try:
@@ -157,8 +160,9 @@ def run_bus_bench(quick: bool = False) -> dict:
             count = n // 3 if gap else n
             samples = [_hops(*pairs[shm], topic, msg, count, warmup, gap) for _ in range(runs)]
             result["hop"][name] = _percentiles(samples)
-        raw = [_raw_hops(*pairs[True], b"x" * len(state.encode()), n, warmup) for _ in range(runs)]
-        result["hop"]["zenoh_raw_248B_baseline"] = _percentiles(raw)
+        if not frame_only:
+            raw = [_raw_hops(*pairs[True], b"x" * len(state.encode()), n, warmup) for _ in range(runs)]
+            result["hop"]["zenoh_raw_248B_baseline"] = _percentiles(raw)
     finally:
         for a, b in pairs.values():
             b.close()

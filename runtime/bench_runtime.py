@@ -2,7 +2,8 @@
 
     sudd bench runtime [--json] [--quick]
 
-* `bus`: one Zenoh hop of a 320x240 RGB frame (runtime.bench_bus, shared memory when available).
+* `bus`: one Zenoh hop of a 320x240 RGB frame (runtime.bench_bus, shared memory when available), measured
+  before the stack starts, so nothing else competes for the CPU.
 * `controller`: period and |jitter| of ControllerLoop at 500 Hz on the realtime SimRig (its telemetry), from
   the robot node of the full stack below (so it runs next to physics, cameras, IK and the policy process).
 * `latency`: the whole sim stack (`sudd run --sim` processes, real Zenoh sessions) with the given bundle:
@@ -94,7 +95,7 @@ def run_runtime_bench(quick: bool = False, bundle: str | Path | None = None) -> 
 
     t_start = time.perf_counter()
     result: dict = {"quick": quick, "target_obs_to_receive_p50_ms": LATENCY_TARGET_P50_MS}
-    bus = run_bus_bench(quick=True)
+    bus = run_bus_bench(quick=quick, frame_only=True)  # 5 x 300 hops: one short run is too noisy
     key = "frame_shm" if bus.get("shm_available") else "frame_copy"
     result["bus_frame_320x240_hop_ms"] = {"p50": bus["hop"][key]["p50_ms"], "p99": bus["hop"][key].get("p99_ms"),
                                           "path": key}

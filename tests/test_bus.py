@@ -287,3 +287,16 @@ def test_close_is_clean():
     assert os_threads[-1] <= os_threads[0] + 2, os_threads
     with pytest.raises(RuntimeError, match="closed"):
         a.publisher(b.ESTOP)
+
+
+def test_bus_bench_measures_the_frame_hops_it_is_asked_for():
+    from runtime.bench_bus import FRAME_TARGET_P50_MS, run_bus_bench
+
+    full = run_bus_bench(quick=True)
+    assert {"frame_shm", "robot_state", "zenoh_raw_248B_baseline"} <= set(full["hop"])
+    r = run_bus_bench(quick=True, frame_only=True)  # what `sudd bench runtime` reports
+    assert set(r["hop"]) == {"frame_shm", "frame_copy"}
+    for h in r["hop"].values():
+        assert 0 < h["p50_ms"] <= h["p90_ms"] <= h["p99_ms"] < 100 and h["samples_per_run"] == 40
+    p50 = r["hop"]["frame_shm" if r["shm_available"] else "frame_copy"]["p50_ms"]
+    assert r["frame_target_met"] == (p50 <= FRAME_TARGET_P50_MS)
