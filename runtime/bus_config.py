@@ -60,6 +60,12 @@ class BusConfig:
                     raise ConfigError(f"{name} endpoint {ep!r} is not loopback; set loopback_only = false")
 
 
+def is_loopback(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (`tcp/127.0.0.1:7447`) names this host's loopback interface."""
+    match = _ENDPOINT.fullmatch(endpoint)
+    return bool(match and _LOOPBACK.fullmatch(match[2]))
+
+
 def pick_port(endpoint: str) -> str:
     """Replace port 0 with a free one: Zenoh's Python API does not report the port it bound."""
     proto, rest = endpoint.split("/", 1)

@@ -101,15 +101,38 @@ def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], a
     return specs
 
 
+def policy_stack(bundle: str, command: str = "") -> list[NodeSpec]:
+    """The policy node alone: for a computer that joins the robot's bus with `--connect` (a GPU box)."""
+    from runtime.nodes.policy_node import PolicyNodeConfig
+
+    return [NodeSpec("policy", "runtime.nodes.policy_node", PolicyNodeConfig(bundle=str(bundle), command=command))]
+
+
+def node_kind(spec: NodeSpec) -> str:
+    """robot | camera | policy: what `sudd run --nodes` selects by."""
+    return "camera" if spec.name.startswith("camera_") else spec.name
+
+
 class Launcher:
     def __init__(self, specs: list[NodeSpec], hub: str = HUB_DEFAULT, robot_name: str = "ur5",
-                 ready_timeout_s: float = 60.0, robot_stop_timeout_s: float = 8.0, grace_s: float = 5.0):
-        if hub.rsplit(":", 1)[-1] == "0":
+                 ready_timeout_s: float = 60.0, robot_stop_timeout_s: float = 8.0, grace_s: float = 5.0,
+                 connect: str | None = None, connect_timeout_s: float = 10.0):
+        """`hub`: where this launcher's bus listens and its nodes connect. `connect`: join the hub of a
+        launcher on another computer instead (its nodes then only dial out), e.g. the policy on a GPU box."""
+        from runtime.bus_config import is_loopback
+
+        if connect is None and hub.rsplit(":", 1)[-1] == "0":
             from runtime.bus import _pick_port
 
             hub = _pick_port(hub)
-        self.hub, self.robot_name = hub, robot_name
-        self.bus_settings = BusSettings(robot=robot_name, connect=(hub,))
+        self.hub, self.robot_name, self.remote = connect or hub, robot_name, connect is not None
+        self.connect_timeout_s = connect_timeout_s
+        local = is_loopback(self.hub)
+        # A hub on a network address is for nodes on other computers: they reach ours directly (Zenoh peers
+        # do not relay), so ours listen on the hub's address too; joined from afar, ours just dial out.
+        proto, host = self.hub.split("/", 1)[0], self.hub.split("/", 1)[1].rsplit(":", 1)[0]
+        listen = () if self.remote else (f"{proto}/{host}:0",)
+        self.bus_settings = BusSettings(robot=robot_name, connect=(self.hub,), listen=listen, loopback_only=local)
         self.specs = [NodeSpec(s.name, s.module, _with_bus(s.config, self.bus_settings)) for s in specs]
         self.ready_timeout_s, self.robot_stop_timeout_s, self.grace_s = ready_timeout_s, robot_stop_timeout_s, grace_s
         self._ctx = mp.get_context("spawn")
@@ -128,9 +151,22 @@ class Launcher:
 
     # ---- start -----------------------------------------------------------------------------------------
     def start(self) -> "Launcher":
+        """Open the bus (NodeFailed if `connect` finds nobody) and start every node; a second call is a no-op."""
         from runtime.bus import Bus, BusConfig
 
-        self.bus = Bus.open(BusConfig(robot=self.robot_name, listen=(self.hub,)))
+        if self.bus is not None:
+            return self
+        if self.remote:
+            self.bus = Bus.open(BusConfig(robot=self.robot_name, listen=(), connect=(self.hub,),
+                                          loopback_only=self.bus_settings.loopback_only))
+            if not self.bus.wait_for_peers(1, self.connect_timeout_s):
+                self.bus, bus = None, self.bus
+                bus.close()
+                raise NodeFailed(f"nothing answers at {self.hub}: start `sudd run ... --hub {self.hub}` on the "
+                                 "robot's computer first, and check the address and that the port is open")
+        else:
+            self.bus = Bus.open(BusConfig(robot=self.robot_name, listen=(self.hub,),
+                                          loopback_only=self.bus_settings.loopback_only))
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._old_handlers[sig] = signal.signal(sig, self._on_signal)
@@ -182,13 +218,33 @@ class Launcher:
         return self.ready_info
 
     # ---- run -------------------------------------------------------------------------------------------
-    def say(self, text: str, command_id: str = "launch") -> None:
+    def say(self, text: str, command_id: str = "launch", wait_s: float = 5.0) -> None:
+        """Publish a language command, after waiting up to `wait_s` for a policy node to subscribe."""
         from runtime import bus as B
         from runtime import messages as m
 
         pub = self.bus.publisher(B.LANGUAGE_COMMAND)
-        pub.wait_matched(5.0)
+        pub.wait_matched(wait_s)
         pub.publish(m.LanguageCommand(text=text, command_id=command_id))
+
+    def say_until_answered(self, text: str, command_id: str = "launch", every_s: float = 1.0):
+        """Send `text` now and again every `every_s` until a policy node answers it (command_accepted or
+        command_refused): for a policy node on another computer, which may join later. Returns a poll
+        function for `monitor(until=...)`-style loops that resends when due and is True once answered."""
+        from runtime import bus as B
+
+        answered, last = threading.Event(), [time.monotonic()]
+        self.bus.subscribe(B.SAFETY_EVENT, lambda e: answered.set() if e.kind.startswith("command_")
+                           and e.message.startswith(f"[{command_id}]") else None)
+        self.say(text, command_id, wait_s=0.0)  # the monitor loop must not block on an absent node
+
+        def poll() -> bool:
+            if not answered.is_set() and time.monotonic() - last[0] >= every_s:
+                last[0] = time.monotonic()
+                self.say(text, command_id, wait_s=0.0)
+            return answered.is_set()
+
+        return poll
 
     def monitor(self, duration_s: float | None = None, until=None, poll_s: float = 0.05) -> str:
         """Watch the nodes until `duration_s`, `until()` true, a signal or a node exiting; then shut down
@@ -255,4 +311,5 @@ class Launcher:
         self.shutdown("context exit" if exc[0] is None else f"{exc[0].__name__} in the launcher")
 
 
-__all__ = ["Launcher", "NodeSpec", "NodeFailed", "sim_stack", "hardware_stack", "bundle_manifest"]
+__all__ = ["Launcher", "NodeSpec", "NodeFailed", "sim_stack", "hardware_stack", "policy_stack", "node_kind",
+           "bundle_manifest"]

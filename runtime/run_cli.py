@@ -12,6 +12,7 @@ from pathlib import Path
 
 DEFAULT_BUNDLE = Path("policy/bundles/demo")
 BUNDLE_ENV = "SUDD_POLICY"
+NODE_KINDS = ("robot", "camera", "policy")
 
 RUN_EPILOG = """\
 examples:
@@ -20,6 +21,12 @@ examples:
   sudd run --robot-ip 192.168.1.10 --camera-serial scene=123456789012 --camera-serial wrist=234567890123 \\
            --policy out/bundle                        # connects and holds: no motion
   sudd run ... --allow-motion                         # the policy may move the arm (through safety)
+
+policy on another computer (a GPU box), controller on the robot's:
+  robot PC:  sudd run --robot-ip 192.168.1.10 --camera-serial ... --nodes robot,camera --hub tcp/0.0.0.0:7447
+  GPU box:   sudd run --connect tcp/ROBOT-PC:7447 --nodes policy --policy out/bundle
+  (the robot PC's launcher sends the command until the policy node answers; open port 7447 and the nodes'
+   ephemeral ports between the two; the same works with --sim on the robot PC)
 
 policy bundle: --policy, else $SUDD_POLICY, else policy/bundles/demo if it exists. Make one with
   sudd train out/data --out out/run  &&  sudd export out/run --out out/bundle
@@ -42,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                          description="Start every node as its own process over real Zenoh sessions, wait for "
                                      "them, run, then stop: the robot node's controlled stop first (Ctrl-C too).",
                          epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    mode = run.add_mutually_exclusive_group(required=True)
+    mode = run.add_mutually_exclusive_group()
     mode.add_argument("--sim", action="store_true", help="the sim twins (realtime SimRig, sim cameras)")
     mode.add_argument("--robot-ip", metavar="IP", help="a real UR (ur_rtde) with a Robotiq 2F-85 on its URCap")
     run.add_argument("--task", default="pick_place", help="sim task family (default pick_place)")
@@ -55,7 +62,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--camera-serial", action="append", default=[], metavar="NAME=SERIAL",
                      help="hardware: RealSense serial per bundle camera (scene=..., wrist=...)")
     run.add_argument("--allow-motion", action="store_true", help="hardware: let the policy move the arm")
-    run.add_argument("--hub", default="tcp/127.0.0.1:7447", help="the launcher's bus endpoint (sudd say connects)")
+    run.add_argument("--hub", default="tcp/127.0.0.1:7447", help="where this launcher's bus listens (sudd say and "
+                     "--connect join there); a network address such as tcp/0.0.0.0:7447 lets other computers in")
+    run.add_argument("--connect", metavar="ENDPOINT", help="join the bus of a `sudd run` on another computer "
+                     "instead of holding one here (e.g. tcp/robot-pc:7447 with --nodes policy)")
+    run.add_argument("--nodes", default=",".join(NODE_KINDS), metavar="LIST",
+                     help=f"which nodes to start here, comma-separated from {', '.join(NODE_KINDS)} (default all)")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)
@@ -82,19 +94,43 @@ def resolve_bundle(arg: str | None) -> Path:
                      "`sudd datagen ...`, `sudd train DATA --out RUN` and `sudd export RUN --out BUNDLE`")
 
 
-def _run(args) -> int:
-    from runtime.launch import Launcher, NodeFailed, hardware_stack, sim_stack
+def parse_nodes(text: str, sim: bool, robot_ip: str | None) -> set[str]:
+    """The node kinds of `--nodes`, checked against the mode; ValueError says what to change."""
+    kinds = {k.strip() for k in text.split(",") if k.strip()}
+    if not kinds or kinds - set(NODE_KINDS):
+        raise ValueError(f"--nodes {text!r}: expected a comma-separated subset of {', '.join(NODE_KINDS)}")
+    if kinds - {"policy"} and not (sim or robot_ip):
+        raise ValueError(f"--nodes {','.join(sorted(kinds))} runs the robot side: add --sim or --robot-ip IP "
+                         "(only `--nodes policy` runs without either)")
+    return kinds
 
+
+def _run(args) -> int:
+    from runtime.launch import Launcher, NodeFailed, hardware_stack, node_kind, policy_stack, sim_stack
+
+    try:
+        kinds = parse_nodes(args.nodes, args.sim, args.robot_ip)
+    except ValueError as exc:
+        print(f"sudd run: {exc}", file=sys.stderr)
+        return 2
     bundle = resolve_bundle(args.policy)
     if args.sim:
         specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr)
-    else:
+    elif args.robot_ip:
         serials = dict(s.split("=", 1) for s in args.camera_serial if "=" in s)
         specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion)
-    la = Launcher(specs, hub=args.hub, robot_name=args.robot)
+    else:
+        specs = policy_stack(str(bundle), command=args.command or "")
+    specs = [s for s in specs if node_kind(s) in kinds]
+    la = Launcher(specs, hub=args.hub, robot_name=args.robot, connect=args.connect)
     succeeded = {"v": False}
     events: list = []
     t0 = time.monotonic()
+    try:
+        la.start()
+    except NodeFailed as exc:
+        print(f"sudd run: {exc}", file=sys.stderr)
+        return 1
     with la:
         try:
             info = la.wait_ready()
@@ -115,9 +151,14 @@ def _run(args) -> int:
         command = args.command or info.get("robot", {}).get("instruction") or ""
         print(f"sudd run: ready in {time.monotonic() - t0:.1f} s; hub {la.hub}; "
               f"command: {command or '(none: use sudd say)'}", file=sys.stderr)
-        if command:
+        answered = lambda: True  # noqa: E731
+        if command and "policy" in kinds:
             la.say(command, "run")
-        reason = la.monitor(duration_s=args.duration, until=(lambda: succeeded["v"]) if args.sim else None)
+        elif command:  # the policy node is elsewhere and may join later
+            answered = la.say_until_answered(command, "run")
+            print(f"sudd run: waiting for a policy node to join at {la.hub}", file=sys.stderr)
+        done = (lambda: succeeded["v"]) if args.sim and "robot" in kinds else (lambda: False)
+        reason = la.monitor(duration_s=args.duration, until=lambda: answered() and done())
     rob, pol = la.reports.get("robot", {}), la.reports.get("policy", {})
     lat = rob.get("latency_ms", {})
     summary = {"stop_reason": reason, "task_success": rob.get("task_success"), "at_rest": rob.get("at_rest"),
@@ -132,12 +173,14 @@ def _run(args) -> int:
         print(json.dumps({"summary": summary, "reports": la.reports}, indent=2, default=str))
     else:
         print(f"stop: {reason}")
-        print(f"task success: {summary['task_success']}   arm at rest: {summary['at_rest']}")
-        print(f"chunks: {summary['chunks']}")
+        if "robot" in kinds:
+            print(f"task success: {summary['task_success']}   arm at rest: {summary['at_rest']}")
+        print(f"chunks: { {k: v for k, v in summary['chunks'].items() if v is not None} }")
         for k, v in summary["latency_ms"].items():
             if v and v.get("n"):
                 print(f"latency {k:16s} p50 {v['p50']:.1f} ms  p99 {v['p99']:.1f} ms  (n={v['n']})")
-        print(f"controller: {summary['controller']}")
+        if "robot" in kinds:
+            print(f"controller: {summary['controller']}")
     crashed = [n for n, c in la.exit_codes.items() if c not in (0, None)]
     return 1 if crashed else 0
 

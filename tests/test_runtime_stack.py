@@ -17,7 +17,7 @@ import pytest
 
 from runtime import bus as B
 from runtime import messages as m
-from runtime.launch import Launcher, sim_stack
+from runtime.launch import Launcher, NodeFailed, node_kind, policy_stack, sim_stack
 
 TASK, SEED = "pick_place", 0
 
@@ -207,3 +207,37 @@ def test_sim_cameras_rendered_in_their_own_process_or_in_the_robot_node(bundle, 
         assert sr["ok"] and sr["exitcode"] == 0 and sr["renders"] >= 10 and sr["send_errors"] == 0, sr
     else:
         assert "sim_render" not in rob
+
+
+def test_policy_on_another_computer_joins_the_robots_bus_with_connect(bundle):
+    """The split deployment (`sudd run --nodes robot` on the robot's computer, `sudd run --connect HUB
+    --nodes policy` on a GPU box), here as two launchers on loopback: the command is sent until a policy node
+    answers, the joining policy node's chunks drive the arm, and its leaving only makes the arm hold."""
+    specs = sim_stack(str(bundle), task=TASK, seed=SEED)
+    robot = Launcher([s for s in specs if node_kind(s) == "robot"], hub="tcp/127.0.0.1:0")
+    robot.start()
+    w = Watch(robot)
+    try:
+        info = robot.wait_ready(90)
+        answered = robot.say_until_answered(info["robot"]["instruction"], "split", every_s=0.5)
+        assert not w.wait(answered, 2.0) and not w.chunks  # no policy node yet: nobody answers, nothing moves
+        policy = Launcher([s for s in specs if node_kind(s) == "policy"], connect=robot.hub)
+        assert policy.bus_settings.listen == () and policy.bus_settings.connect == (robot.hub,)
+        with policy:
+            policy.wait_ready(90)
+            assert w.wait(answered, 20.0), w.kinds()
+            assert w.wait(lambda: len(w.chunks) >= 5, 30.0)
+        assert policy.alive() == [] and policy.reports["policy"]["chunks"] >= 5
+        assert "command_accepted" in w.kinds() and robot.alive() == ["robot"]
+    finally:
+        robot.shutdown("test over")
+    assert _clean_exit(robot)["chunks_accepted"] >= 5
+
+
+def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
+    from runtime.bus import _pick_port
+
+    policy = Launcher(policy_stack(str(bundle)), connect=_pick_port("tcp/127.0.0.1:0"), connect_timeout_s=1.0)
+    with pytest.raises(NodeFailed, match="nothing answers at tcp/127.0.0.1:"):
+        policy.start()
+    assert policy.procs == {} and policy.bus is None

@@ -40,11 +40,13 @@ class BusSettings:
     connect: tuple[str, ...] = (HUB_DEFAULT,)
     listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
     shm: bool = True
+    loopback_only: bool = True  # the launcher clears it when its hub is on a network address
 
     def open(self, wait_peers_s: float = 5.0):
         from runtime.bus import Bus, BusConfig
 
-        bus = Bus.open(BusConfig(robot=self.robot, listen=self.listen, connect=self.connect, shm=self.shm))
+        bus = Bus.open(BusConfig(robot=self.robot, listen=self.listen, connect=self.connect, shm=self.shm,
+                                 loopback_only=self.loopback_only))
         if self.connect:
             bus.wait_for_peers(1, wait_peers_s)
         return bus
