@@ -212,7 +212,8 @@ def test_sim_cameras_rendered_in_their_own_process_or_in_the_robot_node(bundle, 
 def test_policy_on_another_computer_joins_the_robots_bus_with_connect(bundle):
     """The split deployment (`sudd run --nodes robot` on the robot's computer, `sudd run --connect HUB
     --nodes policy` on a GPU box), here as two launchers on loopback: the command is sent until a policy node
-    answers, the joining policy node's chunks drive the arm, and its leaving only makes the arm hold."""
+    answers, the joining policy node's chunks drive the arm, its leaving only makes the arm hold, and a
+    policy node joining again drives it again."""
     specs = sim_stack(str(bundle), task=TASK, seed=SEED)
     robot = Launcher([s for s in specs if node_kind(s) == "robot"], hub="tcp/127.0.0.1:0")
     robot.start()
@@ -229,9 +230,15 @@ def test_policy_on_another_computer_joins_the_robots_bus_with_connect(bundle):
             assert w.wait(lambda: len(w.chunks) >= 5, 30.0)
         assert policy.alive() == [] and policy.reports["policy"]["chunks"] >= 5
         assert "command_accepted" in w.kinds() and robot.alive() == ["robot"]
+        # the peer came back (a restarted GPU box): given the command again, it drives the arm again
+        n = len(w.chunks)
+        again = robot.say_until_answered(info["robot"]["instruction"], "split-again", every_s=0.5)
+        with Launcher([s for s in specs if node_kind(s) == "policy"], connect=robot.hub) as policy2:
+            policy2.wait_ready(90)
+            assert w.wait(again, 20.0) and w.wait(lambda: len(w.chunks) >= n + 5, 30.0)
     finally:
         robot.shutdown("test over")
-    assert _clean_exit(robot)["chunks_accepted"] >= 5
+    assert _clean_exit(robot)["chunks_accepted"] >= 10
 
 
 def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
