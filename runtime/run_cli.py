@@ -63,7 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="hardware: RealSense serial per bundle camera (scene=..., wrist=...)")
     run.add_argument("--allow-motion", action="store_true", help="hardware: let the policy move the arm")
     run.add_argument("--hub", default="tcp/127.0.0.1:7447", help="where this launcher's bus listens (sudd say and "
-                     "--connect join there); a network address such as tcp/0.0.0.0:7447 lets other computers in")
+                     "--connect join there); a network address such as tcp/0.0.0.0:7447 lets other computers in (no "
+                     "authentication: only on the robot's own network)")
     run.add_argument("--connect", metavar="ENDPOINT", help="join the bus of a `sudd run` on another computer "
                      "instead of holding one here (e.g. tcp/robot-pc:7447 with --nodes policy)")
     run.add_argument("--nodes", default=",".join(NODE_KINDS), metavar="LIST",
