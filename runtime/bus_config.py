@@ -66,10 +66,16 @@ def is_loopback(endpoint: str) -> bool:
     return bool(match and _LOOPBACK.fullmatch(match[2]))
 
 
-def pick_port(endpoint: str) -> str:
-    """Replace port 0 with a free one: Zenoh's Python API does not report the port it bound."""
+def split_endpoint(endpoint: str) -> tuple[str, str, str]:
+    """`tcp/127.0.0.1:7447` -> ("tcp", "127.0.0.1", "7447")."""
     proto, rest = endpoint.split("/", 1)
     host, port = rest.rsplit(":", 1)
+    return proto, host, port
+
+
+def pick_port(endpoint: str) -> str:
+    """Replace port 0 with a free one: Zenoh's Python API does not report the port it bound."""
+    proto, host, port = split_endpoint(endpoint)
     if port != "0":
         return endpoint
     family = socket.AF_INET6 if host.startswith("[") else socket.AF_INET

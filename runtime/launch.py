@@ -101,6 +101,11 @@ def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], a
     return specs
 
 
+def answers(event, command_id: str) -> bool:
+    """Whether a StatusEvent is the policy node's answer (command_accepted/_refused) to `command_id`."""
+    return event.kind.startswith("command_") and event.message.startswith(f"[{command_id}]")
+
+
 def policy_stack(bundle: str, command: str = "") -> list[NodeSpec]:
     """The policy node alone: for a computer that joins the robot's bus with `--connect` (a GPU box)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -119,7 +124,7 @@ class Launcher:
                  connect: str | None = None, connect_timeout_s: float = 10.0):
         """`hub`: where this launcher's bus listens and its nodes connect. `connect`: join the hub of a
         launcher on another computer instead (its nodes then only dial out), e.g. the policy on a GPU box."""
-        from runtime.bus_config import is_loopback
+        from runtime.bus_config import is_loopback, split_endpoint
 
         if connect is None and hub.rsplit(":", 1)[-1] == "0":
             from runtime.bus import _pick_port
@@ -130,7 +135,7 @@ class Launcher:
         local = is_loopback(self.hub)
         # A hub on a network address is for nodes on other computers: they reach ours directly (Zenoh peers
         # do not relay), so ours listen on the hub's address too; joined from afar, ours just dial out.
-        proto, host = self.hub.split("/", 1)[0], self.hub.split("/", 1)[1].rsplit(":", 1)[0]
+        proto, host, _ = split_endpoint(self.hub)
         listen = () if self.remote else (f"{proto}/{host}:0",)
         self.bus_settings = BusSettings(robot=robot_name, connect=(self.hub,), listen=listen, loopback_only=local)
         self.specs = [NodeSpec(s.name, s.module, _with_bus(s.config, self.bus_settings)) for s in specs]
@@ -156,17 +161,14 @@ class Launcher:
 
         if self.bus is not None:
             return self
-        if self.remote:
-            self.bus = Bus.open(BusConfig(robot=self.robot_name, listen=(), connect=(self.hub,),
-                                          loopback_only=self.bus_settings.loopback_only))
-            if not self.bus.wait_for_peers(1, self.connect_timeout_s):
-                self.bus, bus = None, self.bus
-                bus.close()
-                raise NodeFailed(f"nothing answers at {self.hub}: start `sudd run ... --hub {self.hub}` on the "
-                                 "robot's computer first, and check the address and that the port is open")
-        else:
-            self.bus = Bus.open(BusConfig(robot=self.robot_name, listen=(self.hub,),
-                                          loopback_only=self.bus_settings.loopback_only))
+        hub = (self.hub,)
+        bus = Bus.open(BusConfig(robot=self.robot_name, listen=() if self.remote else hub,
+                                 connect=hub if self.remote else (), loopback_only=self.bus_settings.loopback_only))
+        if self.remote and not bus.wait_for_peers(1, self.connect_timeout_s):
+            bus.close()
+            raise NodeFailed(f"nothing answers at {self.hub}: start `sudd run ... --hub {self.hub}` on the "
+                             "robot's computer first, and check the address and that the port is open")
+        self.bus = bus
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._old_handlers[sig] = signal.signal(sig, self._on_signal)
@@ -234,8 +236,7 @@ class Launcher:
         from runtime import bus as B
 
         answered, last = threading.Event(), [time.monotonic()]
-        self.bus.subscribe(B.SAFETY_EVENT, lambda e: answered.set() if e.kind.startswith("command_")
-                           and e.message.startswith(f"[{command_id}]") else None)
+        self.bus.subscribe(B.SAFETY_EVENT, lambda e: answered.set() if answers(e, command_id) else None)
         self.say(text, command_id, wait_s=0.0)  # the monitor loop must not block on an absent node
 
         def poll() -> bool:
@@ -312,4 +313,4 @@ class Launcher:
 
 
 __all__ = ["Launcher", "NodeSpec", "NodeFailed", "sim_stack", "hardware_stack", "policy_stack", "node_kind",
-           "bundle_manifest"]
+           "answers", "bundle_manifest"]

@@ -190,6 +190,7 @@ def _say(args) -> int:
     from runtime import bus as B
     from runtime import messages as m
     from runtime.bus import Bus, BusConfig
+    from runtime.launch import answers
 
     cid = uuid.uuid4().hex[:12]
     answer: list = []
@@ -198,7 +199,7 @@ def _say(args) -> int:
             print(f"sudd say: nothing answers at {args.connect} (is `sudd run` up?)", file=sys.stderr)
             return 2
         bus.subscribe(B.SAFETY_EVENT, lambda msg: answer.append(msg)
-                      if msg.kind.startswith("command_") and msg.message.startswith(f"[{cid}]") else None)
+                      if answers(msg, cid) else None)
         pub = bus.publisher(B.LANGUAGE_COMMAND)
         pub.wait_matched(min(args.timeout, 5.0))
         pub.publish(m.LanguageCommand(text=args.text, command_id=cid))
