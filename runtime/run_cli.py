@@ -190,11 +190,18 @@ def _say(args) -> int:
     from runtime import bus as B
     from runtime import messages as m
     from runtime.bus import Bus, BusConfig
+    from runtime.bus_config import is_loopback
     from runtime.launch import answers
+    from sim.config import ConfigError
 
     cid = uuid.uuid4().hex[:12]
     answer: list = []
-    with Bus.open(BusConfig(robot=args.robot, listen=(), connect=(args.connect,))) as bus:
+    try:  # a hub on the robot's network (sudd run --hub tcp/0.0.0.0:7447) is as valid a target as loopback
+        cfg = BusConfig(robot=args.robot, listen=(), connect=(args.connect,), loopback_only=is_loopback(args.connect))
+    except ConfigError as exc:
+        print(f"sudd say: {exc}", file=sys.stderr)
+        return 2
+    with Bus.open(cfg) as bus:
         if not bus.wait_for_peers(1, min(args.timeout, 5.0)):
             print(f"sudd say: nothing answers at {args.connect} (is `sudd run` up?)", file=sys.stderr)
             return 2

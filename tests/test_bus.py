@@ -300,3 +300,12 @@ def test_bus_bench_measures_the_frame_hops_it_is_asked_for():
         assert 0 < h["p50_ms"] <= h["p90_ms"] <= h["p99_ms"] < 100 and h["samples_per_run"] == 40
     p50 = r["hop"]["frame_shm" if r["shm_available"] else "frame_copy"]["p50_ms"]
     assert r["frame_target_met"] == (p50 <= FRAME_TARGET_P50_MS)
+
+
+def test_endpoints_split_and_loopback_is_recognised():
+    from runtime.bus_config import is_loopback, split_endpoint
+
+    assert split_endpoint("tcp/[::1]:7447") == ("tcp", "[::1]", "7447")
+    assert is_loopback("tcp/127.0.0.1:7447") and is_loopback("udp/localhost:1") and is_loopback("tcp/[::1]:7447")
+    assert not is_loopback("tcp/0.0.0.0:7447") and not is_loopback("tcp/192.168.1.5:7447")
+    assert not is_loopback("no endpoint")
