@@ -185,6 +185,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
         steps = [grasp_and_release_steps(a["action"]) for a in low]
+        self.grasp_step = [ts[0] for ts in steps]
         if cfg.aux_target_frame == "tcp":
             self.aux_points = [a["action"][list(ts), :3] for a, ts in zip(low, steps)]
         else:
@@ -288,6 +289,12 @@ class PolicyDataset(torch.utils.data.Dataset):
                 x = color_jitter(x, torch.from_numpy(jitter)) if self.train else x
             images[camera] = x
         return images, jitter
+
+    def before_grasp(self, index: int) -> bool:
+        """Whether the sample's newest observation comes before its episode closes the gripper: the frames on
+        which the grasp point can be seen where it is (afterwards the object rides in the fingers)."""
+        k, s = self.index[index]
+        return s + self.cfg.obs_horizon - 1 < self.grasp_step[k]
 
     def aux_target(self, index: int) -> torch.Tensor:
         """The sample's auxiliary target (6,) in the config's `aux_target_frame`, without reading images."""

@@ -39,6 +39,9 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
     grasp = [r for r in checks if "val_grasp_cm" in r]
     if grasp:
         lines = [line("unseen episodes", grasp, "val_grasp_cm"), line("training episodes", grasp, "fit_grasp_cm")]
+        aiming = [r for r in grasp if "val_pregrasp_cm" in r]  # likewise for this one
+        if aiming:
+            lines.append(line("unseen, before the grasp", aiming, "val_pregrasp_cm"))
         guessed = [r for r in grasp if "guess_grasp_cm" in r]  # rows written before it was logged have none
         if guessed:
             lines.append(line("constant guess", guessed, "guess_grasp_cm"))

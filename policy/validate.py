@@ -9,6 +9,8 @@ centre crops:
 
   loss      the diffusion (noise-prediction) MSE
   grasp_cm  median error of the auxiliary head's grasp point (only with aux_target_weight > 0)
+  pregrasp_cm  the same over the samples observed before the gripper closes, where the policy aims: after
+            the grasp the object rides in the fingers and the point it was taken from is not in the images
 
 each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples), and
 guess_grasp_cm: the error of always answering the training samples' mean grasp point, the scale against
@@ -44,6 +46,7 @@ class Validator:
         for name, (ds, idx) in self.sets.items():
             g = torch.Generator().manual_seed(self.seed)
             losses, errors = [], []
+            before = np.array([ds.before_grasp(int(i)) for i in idx])
             for lo in range(0, len(idx), self.batch):
                 batch = to_device(default_collate([ds[int(i)] for i in idx[lo:lo + self.batch]]), device)
                 batch = finish_images(batch) if ds.uint8_images else batch
@@ -57,7 +60,10 @@ class Validator:
                     errors.append(self._metres(pred) - self._metres(batch["aux"][:, :3].cpu().numpy()))
             out[f"{name}_loss"] = float(torch.cat(losses).mean())
             if errors:
-                out[f"{name}_grasp_cm"] = float(np.median(np.linalg.norm(np.concatenate(errors), axis=1)) * 100)
+                miss = np.linalg.norm(np.concatenate(errors), axis=1) * 100
+                out[f"{name}_grasp_cm"] = float(np.median(miss))
+                if before.any():
+                    out[f"{name}_pregrasp_cm"] = float(np.median(miss[before]))
                 out["guess_grasp_cm"] = self.guess_cm
         model.train(was_training)
         return out

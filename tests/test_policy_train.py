@@ -7,6 +7,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -117,7 +118,17 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     model = DiffusionPolicy(cfg)
     first = check(model, torch.device("cpu"))
     assert first == check(model, torch.device("cpu"))  # fixed samples, noise and timesteps
-    assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm", "guess_grasp_cm"}
+    assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm", "guess_grasp_cm",
+                          "val_pregrasp_cm", "fit_pregrasp_cm"}
+    # before the grasp = the newest observed step precedes the gripper's first close command
+    for ds, idx in check.sets.values():
+        flags = []
+        for i in idx:
+            k, s = ds.index[int(i)]
+            shut = ds.store.window(ds.episodes[k], fields=("action",))["action"][:, -1] > 0.5
+            flags.append(ds.before_grasp(int(i)))
+            assert flags[-1] == (s + cfg.obs_horizon - 1 < (np.argmax(shut) if shut.any() else len(shut) - 1))
+        assert any(flags) and not all(flags)
     for ds in (val, fit):  # the image-free target is the one the samples carry
         assert all(torch.equal(ds.aux_target(i), ds[i]["aux"]) for i in (0, len(ds) // 2, len(ds) - 1))
     assert first["guess_grasp_cm"] > 0
