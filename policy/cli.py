@@ -62,6 +62,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
+    orc = sub.add_parser(
+        "oracle-eval", help="closed-loop pick_place episodes with the aux head's points replaced by the truth",
+        description="Split a policy's failures into perception and control (policy/oracle_eval.py): run the\n"
+                    "seen suite of `sudd eval` (same seeds, controller and safety filter) with the run's torch\n"
+                    "checkpoint, giving the denoiser the sim's true grasp and release points instead of its aux\n"
+                    "head's. Success well above `sudd eval`'s: the head is what fails; about the same: control.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n  sudd oracle-eval out/run_fc5 --episodes 30 --inference-steps 16 --out out/oracle\n"
+               "  sudd oracle-eval out/run_fc5 --episodes 30 --bias-cm 2 --out out/oracle_2cm   # perception 2 cm off")
+    orc.add_argument("run", type=Path, help="training run directory (aux_condition, tcp frames)")
+    orc.add_argument("--out", type=Path, required=True, help="directory for results.jsonl and results.md")
+    orc.add_argument("--episodes", type=int, default=30, help="episodes, seeds seed-offset.. (default 30)")
+    orc.add_argument("--seed-offset", type=int, default=100000, help="first seed (default 100000, as sudd eval)")
+    orc.add_argument("--bias-cm", type=float, default=0.0, help="move the true grasp point this far sideways")
+    orc.add_argument("--inference-steps", type=int, help="DDIM steps (default the run's; match the bundle's)")
+    orc.add_argument("--dr", default="heavy", help="DR preset off|light|heavy or a TOML file (default heavy)")
+    orc.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    orc.set_defaults(func=_oracle_eval)
+
     ex = sub.add_parser(
         "export", help="export a training run to a policy bundle (ONNX + manifest), verified against torch",
         description="Write a self-contained bundle directory (see policy/export.py) from a run's latest\n"
@@ -135,6 +154,22 @@ def _pretrain(args) -> int:
           f"{summary['final_loss']:.4f}, held-out grasp error {val.get('val_grasp_cm', float('nan')):.1f} cm "
           f"({val.get('val_pregrasp_cm', float('nan')):.1f} cm before the grasp); "
           f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
+    return 0
+
+
+def _oracle_eval(args) -> int:
+    from policy.oracle_eval import oracle_eval
+    from runtime.eval_report import markdown_table
+
+    for name in ("episodes", "workers"):
+        if getattr(args, name) < 1:
+            raise SystemExit(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.bias_cm < 0:
+        raise SystemExit(f"--bias-cm must be >= 0, got {args.bias_cm}")
+    rows = oracle_eval(args.run, args.out, args.episodes, args.seed_offset, args.bias_cm, args.inference_steps,
+                       args.dr, args.workers)
+    print(markdown_table(rows))
+    print(f"per episode {args.out / 'results.jsonl'}; compare with `sudd eval` on the same seeds")
     return 0
 
 

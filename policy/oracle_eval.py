@@ -1,0 +1,180 @@
+"""`sudd oracle-eval`: the closed-loop evaluation with the aux head's points replaced by the truth.
+
+Why: a policy conditioned on its aux head's grasp and release points (`aux_condition`) fails either because the
+head puts the points in the wrong place (perception) or because the denoiser does not take the gripper there
+(control). This runs episodes exactly as `sudd eval` runs its seen suite (same seeds and scenes, the runtime's
+controller and safety filter), but the denoiser is given the sim's true points: the named object's and its
+bin's positions plus the median offsets at which the run's demonstrations close and open the gripper
+(`datagen.views.measure_offsets`), in the TCP frame as training gives them. The grasp point follows the object
+until it leaves the table, then stays where it was (the aux target is where the fingers closed).
+`--bias-cm` moves the grasp point that far sideways, in a direction drawn per episode: how precisely
+perception has to place it.
+
+It runs the run's torch checkpoint (EMA weights), not the ONNX bundle, whose obs encoder fuses the head into the
+denoiser's conditioning. That torch is why this lives in policy/ and not in runtime/.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+GRASP, RELEASE = 0, 1
+LIFTED_M = 0.01  # the object counts as taken once it is this far above where it started
+
+
+class TruePoints:
+    """Observer for `run_policy_episode`: the episode's true grasp and release points (2, 3), base frame [m]."""
+
+    def __init__(self, offsets: dict, bias_cm: float, seed: int):
+        self.offsets, self.points, self._z0 = offsets, None, None
+        angle = np.random.default_rng([seed, 23]).uniform(0.0, 2 * np.pi)
+        self.bias = bias_cm / 100.0 * np.array([np.cos(angle), np.sin(angle), 0.0])
+
+    def __call__(self, world, inst) -> None:
+        from sim.state import StateView
+
+        state = StateView(world)
+        obj, bin_ = state.position(inst.params["target"]), state.position(inst.params["bin"])
+        if self._z0 is None:
+            self._z0 = obj[2]
+        if self.points is None or obj[2] < self._z0 + LIFTED_M:
+            self.points = np.stack([obj + self.offsets["grasp"] + self.bias, bin_ + self.offsets["release"]])
+
+
+class OracleAuxPolicy:
+    """What `runtime.evaluate.run_policy_episode` needs of a bundle, from a torch run, with true aux points."""
+
+    def __init__(self, model, normalizer, embedder, inference_steps: int | None = None, control_hz: float = 10.0):
+        cfg = model.cfg
+        if not cfg.aux_condition or cfg.aux_target_frame != "tcp" or cfg.action_frame != "tcp":
+            raise ValueError("oracle-eval needs a run with aux_condition = true and the tcp aux target and action "
+                             f"frames; this one has aux_condition={cfg.aux_condition}, aux_target_frame="
+                             f"{cfg.aux_target_frame!r}, action_frame={cfg.action_frame!r}")
+        self.model, self.normalizer, self._embedder = model.eval(), normalizer, embedder
+        self.image_size, self.obs_horizon = tuple(cfg.image_size), cfg.obs_horizon
+        self.pred_horizon, self.action_dim = cfg.pred_horizon, cfg.action_dim
+        self.execute = slice(cfg.obs_horizon - 1, cfg.obs_horizon - 1 + cfg.action_horizon)
+        self.manifest = {"horizons": {"control_hz": control_hz}}
+        self.truth: TruePoints | None = None
+        from policy.sampling import schedule_for
+
+        self.schedule = schedule_for(model, inference_steps)
+
+    def embed(self, text: str) -> np.ndarray:
+        return np.asarray(self._embedder([text]), np.float32)[0]
+
+    def cond(self, images: dict, proprio: np.ndarray, text_embedding: np.ndarray):
+        """The denoiser's global cond (1, G) with its last AUX_DIM entries the true points."""
+        import torch
+
+        from policy.data import relative_to_tcp
+        from policy.model import prepare_images
+
+        cfg = self.model.cfg
+        with torch.no_grad():
+            imgs = {c: prepare_images(torch.from_numpy(np.asarray(images[c]))[None], cfg.crop_size)
+                    for c in cfg.cameras}
+            p = torch.from_numpy(self.normalizer.normalize_proprio(proprio))[None]
+            cond = self.model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
+        cond[0, -6:] = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
+        return cond
+
+    def act(self, images, proprio, text_embedding, noise=None, rng=None) -> np.ndarray:
+        import torch
+
+        from policy.action_frame import from_tcp, orthonormalize_rot6d
+        from policy.sampling import ddim_sample
+
+        if noise is None:
+            noise = (rng or np.random.default_rng()).standard_normal((self.pred_horizon, self.action_dim))
+        cond = self.cond(images, proprio, text_embedding)
+        x = ddim_sample(self.model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None], self.schedule)
+        a = orthonormalize_rot6d(self.normalizer.unnormalize_action(x[0].numpy()))
+        return from_tcp(a, np.asarray(proprio)[-1, :9])
+
+
+_WORKER: dict = {}
+
+
+def _init(settings: dict) -> None:
+    import torch
+
+    from policy.text import default_embedder
+    from policy.train import load_run_model
+    from policy.warm_start import source_normalizer
+
+    torch.set_num_threads(1)
+    model, _, _ = load_run_model(settings["run"])
+    policy = OracleAuxPolicy(model, source_normalizer(settings["run"]), default_embedder(), settings["steps"])
+    _WORKER.update(settings=settings, policy=policy)
+
+
+def _job(seed: int) -> dict:
+    from runtime.evaluate import run_policy_episode
+    from sim.tasks import Holdout
+
+    s, policy = _WORKER["settings"], _WORKER["policy"]
+    offsets = {k: np.asarray(v) for k, v in s["offsets"].items()}
+    policy.truth = TruePoints(offsets, s["bias_cm"], seed)
+    t0 = time.perf_counter()
+    out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
+                             time_limit_factor=s["time_limit_factor"],
+                             holdout=Holdout(colors=tuple(s["holdout"]["colors"]),
+                                             shapes=tuple(s["holdout"]["shapes"])))
+    suite = "oracle" if s["bias_cm"] == 0 else f"oracle+{s['bias_cm']:g}cm"
+    return {"suite": suite, "who": "policy", **out.record(), "wall_s": round(time.perf_counter() - t0, 2)}
+
+
+def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_offset: int = 100000,
+                bias_cm: float = 0.0, inference_steps: int | None = None, dr: str = "heavy", workers: int = 1,
+                progress: bool = True, time_limit_factor: float = 1.0) -> list[dict]:
+    """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows."""
+    from datagen.views import TASK, measure_offsets
+    from runtime.eval_report import failure_table, markdown_table, summarise
+
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    dataset = json.loads((run_dir / "dataset.json").read_text())
+    offsets = measure_offsets(dataset["path"])
+    settings = {"run": str(run_dir), "task": TASK, "dr": dr, "bias_cm": float(bias_cm), "steps": inference_steps,
+                "time_limit_factor": time_limit_factor,
+                "holdout": dataset.get("holdout") or {"colors": [], "shapes": []},
+                "offsets": {k: np.asarray(offsets[k]).tolist() for k in ("grasp", "release")}}
+    seeds = list(range(seed_offset, seed_offset + episodes))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    records = []
+    with open(out_dir / "results.jsonl", "w") as f:
+        for rec in _map(seeds, settings, workers, progress):
+            f.write(json.dumps(rec) + "\n")
+            f.flush()  # an interrupted run keeps the episodes it finished
+            records.append(rec)
+    rows = summarise(records)
+    (out_dir / "results.md").write_text(markdown_table(rows) + "\n\n" + failure_table(rows) + "\n")
+    return rows
+
+
+def _map(seeds: list[int], settings: dict, workers: int, progress: bool):
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(seeds), desc="oracle-eval", unit="ep", disable=not progress)
+    if workers <= 1:
+        _init(settings)
+        jobs = map(_job, seeds)
+    else:
+        import multiprocessing as mp
+
+        pool = mp.get_context("spawn").Pool(workers, initializer=_init, initargs=(settings,))
+        jobs = pool.imap_unordered(_job, seeds)
+    ok = 0
+    for rec in jobs:
+        ok += bool(rec["success"])
+        bar.update(1)
+        bar.set_postfix(ok=ok)
+        yield rec
+    bar.close()
+    if workers > 1:
+        pool.close()
+        pool.join()

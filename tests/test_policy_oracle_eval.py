@@ -1,0 +1,96 @@
+"""sudd oracle-eval: the denoiser given the sim's true aux points, in closed loop as sudd eval runs it."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.schema import rot6d
+from policy.config import AUX_DIM, load_policy_config
+from policy.data import relative_to_tcp
+from policy.model import DiffusionPolicy
+from policy.oracle_eval import OracleAuxPolicy, TruePoints, oracle_eval
+from policy.testing import TINY, hash_embedder, synthetic_dataset
+from policy.train import load_run_model, train
+from policy.warm_start import source_normalizer
+from runtime.evaluate import run_policy_episode
+from sim.build import build_episode
+from sim.state import StateView
+
+AUXC = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "aux_condition": True}
+OFFSETS = {"grasp": np.array([0.0, 0.0, 0.01]), "release": np.array([0.0, 0.0, 0.13])}
+SEED = 100000
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("oracle")
+    data = synthetic_dataset(root / "data", episodes=4, smooth=True)
+    train(data, dict(TINY), root / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
+          overrides=AUXC)
+    return root / "run"
+
+
+def _policy(run) -> OracleAuxPolicy:
+    model, _, _ = load_run_model(run)
+    return OracleAuxPolicy(model, source_normalizer(run), hash_embedder)
+
+
+def test_true_points_are_the_object_and_bin_plus_the_offsets_and_bias_moves_the_grasp_sideways():
+    ep = build_episode("pick_place", SEED, "heavy", "fast")
+    state = StateView(ep.world)
+    exact, biased = TruePoints(OFFSETS, 0.0, SEED), TruePoints(OFFSETS, 2.0, SEED)
+    exact(ep.world, ep.instance)
+    biased(ep.world, ep.instance)
+    np.testing.assert_allclose(exact.points[0], state.position(ep.instance.params["target"]) + OFFSETS["grasp"])
+    np.testing.assert_allclose(exact.points[1], state.position(ep.instance.params["bin"]) + OFFSETS["release"])
+    shift = biased.points - exact.points
+    assert np.linalg.norm(shift[0]) == pytest.approx(0.02) and shift[0, 2] == 0.0 and not shift[1].any()
+    other = TruePoints(OFFSETS, 2.0, SEED + 1)
+    other(ep.world, ep.instance)
+    assert not np.allclose(other.points[0], biased.points[0])  # a direction per episode
+
+
+def test_the_denoiser_gets_the_true_points_in_the_tcp_frame_and_the_head_is_bypassed(run):
+    policy = _policy(run)
+    cfg = policy.model.cfg
+    ep = build_episode("pick_place", SEED, "heavy", "fast")
+    policy.truth = TruePoints(OFFSETS, 0.0, SEED)
+    policy.truth(ep.world, ep.instance)
+    rng = np.random.default_rng(0)
+    images = {c: rng.integers(0, 256, (cfg.obs_horizon, *cfg.image_size, 3), dtype=np.uint8) for c in cfg.cameras}
+    T = ep.world.tcp_pose()
+    proprio = np.tile(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [0.0], ep.world.arm_q()]),
+                      (cfg.obs_horizon, 1)).astype(np.float32)
+    emb = policy.embed("move the blue block to the left bin")
+    cond = policy.cond(images, proprio, emb)
+    torch.testing.assert_close(cond[0, -AUX_DIM:], relative_to_tcp(policy.truth.points, proprio[-1]))
+    with torch.no_grad():
+        from policy.model import prepare_images
+
+        imgs = {c: prepare_images(torch.from_numpy(images[c])[None], cfg.crop_size) for c in cfg.cameras}
+        head = policy.model.encode(imgs, torch.from_numpy(policy.normalizer.normalize_proprio(proprio))[None],
+                                   torch.from_numpy(emb)[None])
+    torch.testing.assert_close(cond[0, :-AUX_DIM], head[0, :-AUX_DIM])
+    assert not torch.allclose(cond[0, -AUX_DIM:], head[0, -AUX_DIM:])
+    chunk = policy.act(images, proprio, emb, rng=np.random.default_rng(1))
+    assert chunk.shape == (cfg.pred_horizon, cfg.action_dim) and np.isfinite(chunk).all()
+
+
+def test_oracle_eval_runs_episodes_through_the_controller_and_writes_them(run, tmp_path):
+    policy = _policy(run)
+    policy.truth = TruePoints(OFFSETS, 0.0, SEED)
+    out = run_policy_episode(policy, "pick_place", SEED, dr="heavy", observer=policy.truth, time_limit_factor=0.05)
+    assert out.chunks > 0 and policy.truth.points is not None
+    rows = oracle_eval(run, tmp_path / "ev", episodes=1, seed_offset=SEED, bias_cm=1.0, progress=False,
+                       time_limit_factor=0.05)
+    recs = [json.loads(x) for x in (tmp_path / "ev" / "results.jsonl").read_text().splitlines()]
+    assert [r["seed"] for r in recs] == [SEED] and recs[0]["suite"] == "oracle+1cm" and recs[0]["chunks"] > 0
+    assert rows[0]["n"] == 1 and "oracle+1cm" in (tmp_path / "ev" / "results.md").read_text()
+
+
+def test_a_run_without_aux_condition_is_refused_with_the_fields_named():
+    model = DiffusionPolicy(load_policy_config(TINY, {"aux_target_weight": 1.0}))
+    with pytest.raises(ValueError, match="aux_condition=False"):
+        OracleAuxPolicy(model, None, hash_embedder)
