@@ -107,6 +107,22 @@ def test_gripper_follows_the_channel_with_hysteresis():
     assert loop.grip.commands == 3  # open (first value sets the state), close, open: none in the band
 
 
+def test_gripper_min_hold_keeps_a_grasp_through_a_chunk_that_flickers_open():
+    for hold, reopened in ((0.0, True), (0.6, False)):
+        rig, loop, p0, R = make(gripper_min_hold=hold)
+        t0 = rig.now_ns() * 1e-9
+        rig.gripper.activate()
+        grip = lambda t: 0.9 if t0 + 0.2 <= t < t0 + 0.5 else 0.0  # noqa: E731  closed for 0.3 s only
+        targets = []
+        for _ in range(8):  # 1.6 s
+            assert loop.submit(chunk(rig.now_ns(), lambda t: p0, R, grip))
+            run(rig, loop, 100)
+            targets.append(rig.gripper.state().target)
+        assert targets[2] == (0.0 if reopened else 1.0)  # 0.6 s: 0.1-0.3 s after the flicker opened
+        assert targets[-1] == 0.0  # the hold ends: it opens
+        assert loop.grip.commands == 3
+
+
 def test_late_chunk_is_entered_part_way_without_a_jump():
     rig, loop, p0, R = make()
     t0 = rig.now_ns() * 1e-9

@@ -46,6 +46,9 @@ class ControllerConfig:
     servo_gain: float = field(default=1000.0, metadata=spec(100.0, 2000.0))
     gripper_close_above: float = field(default=0.6, metadata=spec(0.0, 1.0))
     gripper_open_below: float = field(default=0.4, metadata=spec(0.0, 1.0))
+    gripper_min_hold: float = field(default=0.0, metadata=spec(0.0, 5.0, "s", doc=(
+        "after a close or open, ignore the opposite edge for this long: a grasp is not undone by one chunk "
+        "that flickers open (the collector holds 0.6 s after closing)")))
     gripper_speed: float = field(default=0.08, metadata=spec(0.0, 0.15, "m/s"))
     gripper_force: float = field(default=40.0, metadata=spec(0.0, 235.0, "N"))
     stop_timeout: float = field(default=2.0, metadata=spec(0.05, 30.0, "s", doc="stop(): give up after"))

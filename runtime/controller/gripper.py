@@ -27,6 +27,7 @@ class GripperChannel:
         self.gripper, self.limits, self.cfg = gripper, limits, config
         self.closed: bool | None = None  # the commanded state; None until the first command
         self.commands = 0
+        self._edge_at = -float("inf")  # when the last command was sent
 
     def update(self, value: float | None, now: float, allowed: bool, events) -> bool | None:
         """Feed the channel's value at this cycle; returns True/False (closed/open) when a command was sent."""
@@ -40,6 +41,8 @@ class GripperChannel:
             want = False
         if want is None or want == self.closed:
             return None
+        if self.closed is not None and now - self._edge_at < cfg.gripper_min_hold:
+            return None
         opening = 0.0 if want else STROKE_M
         cmd, _ = limit_gripper(self.limits, opening, cfg.gripper_speed, cfg.gripper_force, now, events)
         if cmd is None:
@@ -47,6 +50,8 @@ class GripperChannel:
         position = 1.0 - min(1.0, cmd.opening / STROKE_M)
         ok = self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE), wait=False)
         if ok:
+            if self.closed is not None:  # the first command only sets the state: no hold after it
+                self._edge_at = now
             self.closed = want
             self.commands += 1
             return want
