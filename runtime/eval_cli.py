@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 EPILOG = """\
@@ -53,6 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episode budget = task.max_seconds x this (default 1; the collector keeps datagen's 2)")
     ev.add_argument("--replan-every", type=int, default=1, metavar="TICKS",
                     help="policy ticks between inferences (1: every tick, as the runtime's policy node)")
+    ev.add_argument("--controller", type=Path, metavar="FILE.toml",
+                    help="chunk controller settings (as sudd run --controller): a TOML file of "
+                         "runtime/controller/config.py's fields; recorded in summary.json")
     ev.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     ev.add_argument("--out", type=Path, default=Path("out/eval"), help="results directory (default out/eval)")
     ev.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -61,10 +65,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _eval(args) -> int:
     from policy.bundle import Bundle
+    from runtime.controller import ControllerConfig, load_controller
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from sim.tasks import get_task
 
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
+    controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     tasks = bundle.tasks if not args.task or "all" in args.task else [get_task(t).name for t in args.task]
     if not tasks:
         raise ValueError(f"{args.policy} records no tasks; name them with --task")
@@ -90,7 +96,8 @@ def _eval(args) -> int:
     have = {key(r) for r in done}
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
-                "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every}
+                "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
+                "controller": asdict(controller)}
     from tqdm import tqdm
 
     t0 = time.perf_counter()
@@ -157,8 +164,12 @@ _WORKER: dict = {}
 def _init(settings: dict) -> None:
     from policy.bundle import Bundle
 
+    from runtime.controller import ControllerConfig
+    from sim.config import load_config
+
     _WORKER.clear()
-    _WORKER.update(settings=settings, bundle=Bundle.load(settings["bundle"], intra_op_num_threads=1))
+    _WORKER.update(settings=settings, bundle=Bundle.load(settings["bundle"], intra_op_num_threads=1),
+                   controller=load_config(ControllerConfig, settings["controller"]))
 
 
 def _job(job: dict) -> dict:
@@ -174,7 +185,8 @@ def _job(job: dict) -> dict:
 
         out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
-                                 time_limit_factor=s["time_limit_factor"]).record()
+                                 time_limit_factor=s["time_limit_factor"],
+                                 controller=_WORKER["controller"]).record()
     else:
         out = _collector(job["task"], job["seed"], s["dr"], holdout)
     return {**job, **out, "wall_s": round(time.perf_counter() - t0, 2)}

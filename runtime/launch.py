@@ -83,7 +83,7 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
 
 
 def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], allow_motion: bool = False,
-                   command: str = "") -> list[NodeSpec]:
+                   command: str = "", **robot_overrides) -> list[NodeSpec]:
     """robot node on URRtdeArm + Robotiq2F85, one camera node per bundle camera, the policy node."""
     from runtime.nodes.camera_node import CameraNodeConfig
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -91,7 +91,7 @@ def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], a
 
     man = bundle_manifest(bundle)
     specs = [NodeSpec(ROBOT, "runtime.nodes.robot_node",
-                      RobotNodeConfig(robot_ip=robot_ip, allow_motion=allow_motion, cameras=()))]
+                      RobotNodeConfig(robot_ip=robot_ip, allow_motion=allow_motion, cameras=(), **robot_overrides))]
     for cam in man["cameras"]:
         if cam not in camera_serials:
             raise ValueError(f"the bundle needs camera {cam!r}: give its serial (--camera-serial {cam}=SERIAL)")

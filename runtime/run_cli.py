@@ -35,7 +35,9 @@ hardware bring-up checklist (before --allow-motion):
   1. E-stop within reach and tested; workspace clear; speed slider at 10-30 % on the teach pendant.
   2. Robot in Remote Control, ur_rtde reachable (ping ROBOT_IP; ports 30004/29999 open); the Robotiq
      URCap installed and its socket on port 63352.
-  3. Safety limits file reviewed (safety/limits_example.toml): workspace box, keep-out boxes, TCP speed.
+  3. Safety limits of your cell (copy safety/limits_example.toml: workspace box, keep-out boxes, TCP speed),
+     given with --limits cell.toml; the controller's servo lag for your arm with --controller ur5.toml
+     (execution_latency = 0.1 is nearer a real UR than the sim's 0.016).
   4. Cameras: `rs-enumerate-devices` lists each serial; the scene camera at its calibrated pose
      (sudd calibration); the hand-eye result loaded.
   5. First run WITHOUT --allow-motion: state and frames flow (watch `sudd say` answers and the events);
@@ -69,6 +71,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                      "instead of holding one here (e.g. tcp/robot-pc:7447 with --nodes policy)")
     run.add_argument("--nodes", default=",".join(NODE_KINDS), metavar="LIST",
                      help=f"which nodes to start here, comma-separated from {', '.join(NODE_KINDS)} (default all)")
+    run.add_argument("--controller", type=Path, metavar="FILE.toml",
+                     help="chunk controller settings: a TOML file of runtime/controller/config.py's fields, e.g. "
+                          "execution_latency = 0.1 (a real UR's servo lag; its estimate is in the controller "
+                          "telemetry) or gripper_min_hold = 0.6; the rest keep their defaults")
+    run.add_argument("--limits", type=Path, metavar="FILE.toml",
+                     help="safety limits of your cell (workspace box, keep-out boxes, speeds): a TOML file as "
+                          "safety/limits_example.toml; missing keys keep the defaults for the arm's variant")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)
@@ -115,11 +124,26 @@ def _run(args) -> int:
         print(f"sudd run: {exc}", file=sys.stderr)
         return 2
     bundle = resolve_bundle(args.policy)
+    robot = {}
+    for flag, given in (("--controller", args.controller), ("--limits", args.limits)):
+        if given is not None and not (args.sim or args.robot_ip):
+            print(f"sudd run: {flag} configures the robot node: add --sim or --robot-ip IP", file=sys.stderr)
+            return 2
+    # A bad file is a ConfigError naming the field, raised here before any node starts.
+    if args.controller is not None:
+        from runtime.controller import load_controller
+
+        robot["controller"] = load_controller(args.controller)
+    if args.limits is not None:
+        from safety import load_limits
+
+        load_limits(args.limits)  # checked against the arm's variant again by the robot node once it knows it
+        robot["limits_file"] = str(args.limits.resolve())
     if args.sim:
-        specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr)
+        specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr, **robot)
     elif args.robot_ip:
         serials = dict(s.split("=", 1) for s in args.camera_serial if "=" in s)
-        specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion)
+        specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion, **robot)
     else:
         specs = policy_stack(str(bundle), command=args.command or "")
     specs = [s for s in specs if node_kind(s) in kinds]
@@ -167,8 +191,9 @@ def _run(args) -> int:
                           "accepted": rob.get("chunks_accepted"), "rejected": rob.get("chunks_rejected")},
                "latency_ms": {"obs_to_publish": lat.get("publish"), "obs_to_receive": lat.get("receive"),
                               "obs_to_accepted": lat.get("accepted"), "inference": pol.get("inference_ms")},
-               "controller": {k: rob.get("controller_summary", {}).get(k)
-                              for k in ("rate_hz", "period_p99_ms", "jitter_p99_ms", "on_time")},
+               "controller": {**{k: rob.get("controller_summary", {}).get(k)
+                                 for k in ("rate_hz", "period_p99_ms", "jitter_p99_ms", "on_time")},
+                              "latency_estimate_s": rob.get("latency_estimate_s")},
                "bypass": rob.get("bypass"), "exit_codes": la.exit_codes}
     if args.json:
         print(json.dumps({"summary": summary, "reports": la.reports}, indent=2, default=str))

@@ -159,6 +159,28 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
 
 
+def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, tmp_path, monkeypatch):
+    import runtime.evaluate
+    from runtime.cli import main
+
+    seen = []
+    real = runtime.evaluate.run_policy_episode
+
+    def spy(*args, **kw):
+        seen.append(kw["controller"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(runtime.evaluate, "run_policy_episode", spy)
+    toml = tmp_path / "hold.toml"
+    toml.write_text("gripper_min_hold = 0.6\n")
+    out = tmp_path / "eval"
+    assert main(["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
+                 "--time-limit-factor", "0.03", "--controller", str(toml), "--out", str(out)]) == 0
+    assert [c.gripper_min_hold for c in seen] == [0.6]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["controller"]["gripper_min_hold"] == 0.6
+
+
 def test_eval_cli_refuses_heldout_without_a_holdout(untrained_bundle, tmp_path, capsys):
     from runtime.cli import main
 

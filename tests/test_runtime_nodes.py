@@ -64,6 +64,66 @@ def test_run_requires_a_policy(monkeypatch, tmp_path, capsys):
     assert "--policy" in err and "sudd train" in err and "sudd export" in err
 
 
+def test_controller_file_reaches_the_robot_node_and_bad_files_are_refused(tmp_path, capsys):
+    """`sudd run --controller FILE`: a real UR needs its own servo lag (execution_latency); the file's
+    fields reach the robot node's ControllerLoop on the sim and the hardware stack, a bad file stops the
+    launcher before any node starts, with the field and its range."""
+    import json
+
+    from runtime.cli import main
+    from runtime.controller import ControllerConfig, load_controller
+    from runtime.launch import hardware_stack, sim_stack
+    from sim.config import ConfigError
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96]}))
+    good = tmp_path / "ur5.toml"
+    good.write_text("execution_latency = 0.1\ngripper_min_hold = 0.6\n")
+    cfg = load_controller(good)
+    assert (cfg.execution_latency, cfg.gripper_min_hold, cfg.blend_time) == (0.1, 0.6, ControllerConfig().blend_time)
+    sim = sim_stack(str(tmp_path), controller=cfg)[0].config
+    hw = hardware_stack(str(tmp_path), "10.0.0.2", {"scene": "123"}, controller=cfg)[0].config
+    for robot in (sim, hw):
+        back = config_from_dict(RobotNodeConfig, config_to_dict(robot))  # the trip to the node process
+        assert back.controller == cfg
+    assert RobotNodeConfig().controller == ControllerConfig()
+
+    typo = tmp_path / "typo.toml"
+    typo.write_text("gripper_hold = 0.6\n")
+    with pytest.raises(ConfigError, match="gripper_min_hold"):
+        load_controller(typo)
+    far = tmp_path / "far.toml"
+    far.write_text("execution_latency = 2.0\n")
+    assert main(["run", "--sim", "--policy", str(tmp_path), "--controller", str(far)]) == 2
+    err = capsys.readouterr().err
+    assert "execution_latency" in err and "0.5" in err
+    assert main(["run", "--policy", str(tmp_path), "--nodes", "policy", "--controller", str(good)]) == 2
+    assert "--sim or --robot-ip" in capsys.readouterr().err
+
+
+def test_limits_file_reaches_the_robot_node_and_bad_files_are_refused(tmp_path, capsys):
+    """`sudd run --limits FILE`: the cell's workspace box and speeds (safety/limits_example.toml) are the
+    ones the robot node's safety filter enforces; a limit out of range stops the launcher before any node."""
+    import json
+    from pathlib import Path
+
+    from runtime.cli import main
+    from runtime.launch import sim_stack
+    from safety import default_limits, load_limits
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96]}))
+    example = Path(__file__).resolve().parents[1] / "safety" / "limits_example.toml"
+    robot = sim_stack(str(tmp_path), limits_file=str(example))[0].config
+    robot = config_from_dict(RobotNodeConfig, config_to_dict(robot))
+    node = load_limits(robot.limits_file or None, variant="ur5e")  # what the node's filter is built from
+    assert len(node.workspace.keepout) == 1 and not default_limits("ur5e").workspace.keepout
+    assert node != default_limits("ur5e")
+    assert load_limits(RobotNodeConfig().limits_file or None, variant="ur5e") == default_limits("ur5e")
+    bad = tmp_path / "fast.toml"
+    bad.write_text("[tcp]\nmax_linear_speed = 50.0\n")
+    assert main(["run", "--sim", "--policy", str(tmp_path), "--limits", str(bad)]) == 2
+    assert "max_linear_speed" in capsys.readouterr().err
+
+
 def test_help_documents_hardware_and_say(capsys):
     from runtime.cli import main
 

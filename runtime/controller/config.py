@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from sim.config import ConfigError, spec, validate
+from sim.config import ConfigError, load_toml, spec, validate
 
 
 @dataclass(frozen=True)
@@ -68,4 +68,10 @@ class ControllerConfig:
             raise ConfigError(f"max_blend_time = {self.max_blend_time} must be >= blend_time = {self.blend_time}")
 
 
-__all__ = ["ControllerConfig"]
+def load_controller(path) -> ControllerConfig:
+    """`sudd run/eval --controller FILE`: a TOML file of ControllerConfig fields, the rest left at their
+    defaults; an unknown field or a value out of range is a ConfigError that names it."""
+    return load_toml(ControllerConfig, path)
+
+
+__all__ = ["ControllerConfig", "load_controller"]

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from runtime.controller.config import ControllerConfig
 from runtime.nodes.common import BusSettings, NodeContext, cli_main, percentiles
 from runtime.nodes.robot_guards import GuardedArm, GuardedFilter, Hold
 
@@ -69,6 +70,8 @@ class RobotNodeConfig:
     gripper_port: int = 63352
     allow_motion: bool = False  # hardware: without it the node connects, reads state and holds (no servo)
     # both
+    controller: ControllerConfig = field(default_factory=ControllerConfig)  # `sudd run --controller FILE.toml`
+    limits_file: str = ""  # `sudd run --limits FILE.toml` (safety.load_limits); empty: default_limits(variant)
     state_hz: float = 100.0  # arm/gripper state publishing (downsampled from the control loop)
     telemetry_s: float = 1.0
     # fault injection (sim, tests): seconds after ready; 0 = off
@@ -89,8 +92,8 @@ def _holdout(cfg: RobotNodeConfig):
 def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
     from runtime import bus as B
     from runtime import messages as m
-    from runtime.controller import ControllerConfig, ControllerLoop
-    from safety import SafetyFilter, default_limits
+    from runtime.controller import ControllerLoop
+    from safety import SafetyFilter, load_limits
 
     report: dict = {"mode": "hardware" if cfg.robot_ip else "sim", "chunks_received": 0, "chunks_accepted": 0,
                     "chunks_rejected": 0, "frames_published": {}, "events": {}, "task_success": False}
@@ -145,12 +148,12 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 render.wait_ready(episode.world.model)
             rig.start()
             gripper.activate()
-        safety = GuardedFilter(SafetyFilter(default_limits(variant)))
+        safety = GuardedFilter(SafetyFilter(load_limits(cfg.limits_file or None, variant=variant)))
         arm = GuardedArm(raw_arm, safety)
         if cfg.robot_ip and not cfg.allow_motion:
             loop = Hold()
         else:
-            loop = ControllerLoop(arm, gripper, safety, ControllerConfig())
+            loop = ControllerLoop(arm, gripper, safety, cfg.controller)
         # ---- bus ---------------------------------------------------------------------------------------
         pub_state, pub_grip = bus.publisher(B.ARM_STATE), bus.publisher(B.GRIPPER_STATE)
         pub_event = bus.publisher(B.SAFETY_EVENT)
@@ -272,6 +275,10 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 tel = {k[:-3]: int(v * 1e6) for k, v in summ.items() if k.endswith("_ms") and np.isfinite(v)}
                 if chunk_lat["receive"]:
                     tel["obs_to_controller_p50"] = int(np.percentile(chunk_lat["receive"], 50))
+                est = loop.latency_estimate() if hasattr(loop, "latency_estimate") else None
+                if est is not None:  # the servo lag to set as execution_latency (sudd run --controller)
+                    tel["latency_estimate"] = int(est * 1e9)
+                    report["latency_estimate_s"] = round(float(est), 4)
                 if tel:
                     pub_tel.publish(m.Telemetry(durations_ns=tel))
             if rig is not None and cfg.fault_protective_stop_s > 0 and not injected_ps \
