@@ -191,6 +191,15 @@ def _load_stats(path: Path, dp: int, da: int) -> dict[str, np.ndarray]:
     return stats
 
 
+def check_replan_every(n: int, action_horizon: int) -> None:
+    """Policy ticks between inferences (`sudd run/eval --replan-every`): each chunk must still cover the
+    wait for the next one, so 1 .. action_horizon; ValueError otherwise."""
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= action_horizon:
+        raise ValueError(f"replan_every = {n!r}: expected an integer in 1..{action_horizon} (the bundle executes "
+                         f"{action_horizon} actions a chunk; waiting longer for the next chunk leaves the arm "
+                         "without targets and the controller holds it)")
+
+
 class Bundle:
     """A validated policy bundle with its onnxruntime sessions. Create with `Bundle.load`."""
 
@@ -210,6 +219,9 @@ class Bundle:
         self._clip = bool(m.get("diffusion", {}).get("clip_sample", True))
         self._cache: dict[str, np.ndarray] = {}
         self._refs = np.zeros((0, TEXT_DIM), np.float32)
+
+    def check_replan_every(self, n: int) -> None:
+        check_replan_every(n, self.action_horizon)
 
     @classmethod
     def load(cls, path: str | Path, intra_op_num_threads: int = 2, allow_spinning: bool = False,

@@ -71,6 +71,7 @@ def _eval(args) -> int:
 
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
+    bundle.check_replan_every(args.replan_every)
     tasks = bundle.tasks if not args.task or "all" in args.task else [get_task(t).name for t in args.task]
     if not tasks:
         raise ValueError(f"{args.policy} records no tasks; name them with --task")

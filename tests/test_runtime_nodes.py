@@ -64,18 +64,39 @@ def test_run_requires_a_policy(monkeypatch, tmp_path, capsys):
     assert "--policy" in err and "sudd train" in err and "sudd export" in err
 
 
+def _manifest(d):
+    import json
+
+    man = {"cameras": ["scene"], "image_size": [96, 96], "horizons": {"action": 8}}
+    (d / "manifest.json").write_text(json.dumps(man))
+
+
+def test_replan_every_is_checked_against_the_bundle_and_reaches_the_policy_node(tmp_path, capsys):
+    from policy.bundle import check_replan_every
+    from runtime.cli import main
+    from runtime.launch import policy_stack, sim_stack
+
+    for bad in (0, 9, True, 2.0):
+        with pytest.raises(ValueError, match=r"replan_every = .*1\.\.8"):
+            check_replan_every(bad, 8)
+    check_replan_every(8, 8)
+    _manifest(tmp_path)
+    assert main(["run", "--sim", "--policy", str(tmp_path), "--replan-every", "9"]) == 2
+    assert "1..8" in capsys.readouterr().err
+    for spec in (sim_stack(str(tmp_path), replan_every=4)[1], policy_stack(str(tmp_path), replan_every=4)[0]):
+        assert config_from_dict(PolicyNodeConfig, config_to_dict(spec.config)).replan_every == 4
+
+
 def test_controller_file_reaches_the_robot_node_and_bad_files_are_refused(tmp_path, capsys):
     """`sudd run --controller FILE`: a real UR needs its own servo lag (execution_latency); the file's
     fields reach the robot node's ControllerLoop on the sim and the hardware stack, a bad file stops the
     launcher before any node starts, with the field and its range."""
-    import json
-
     from runtime.cli import main
     from runtime.controller import ControllerConfig, load_controller
     from runtime.launch import hardware_stack, sim_stack
     from sim.config import ConfigError
 
-    (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96]}))
+    _manifest(tmp_path)
     good = tmp_path / "ur5.toml"
     good.write_text("execution_latency = 0.1\ngripper_min_hold = 0.6\n")
     cfg = load_controller(good)
@@ -103,14 +124,13 @@ def test_controller_file_reaches_the_robot_node_and_bad_files_are_refused(tmp_pa
 def test_limits_file_reaches_the_robot_node_and_bad_files_are_refused(tmp_path, capsys):
     """`sudd run --limits FILE`: the cell's workspace box and speeds (safety/limits_example.toml) are the
     ones the robot node's safety filter enforces; a limit out of range stops the launcher before any node."""
-    import json
     from pathlib import Path
 
     from runtime.cli import main
     from runtime.launch import sim_stack
     from safety import default_limits, load_limits
 
-    (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96]}))
+    _manifest(tmp_path)
     example = Path(__file__).resolve().parents[1] / "safety" / "limits_example.toml"
     robot = sim_stack(str(tmp_path), limits_file=str(example))[0].config
     robot = config_from_dict(RobotNodeConfig, config_to_dict(robot))

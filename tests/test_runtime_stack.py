@@ -248,3 +248,29 @@ def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
     with pytest.raises(NodeFailed, match="nothing answers at tcp/127.0.0.1:"):
         policy.start()
     assert policy.procs == {} and policy.bus is None
+
+
+def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
+    """`sudd run --replan-every 4`: a chunk every 4th tick (2.5 Hz for a 10 Hz bundle), its actions still
+    0.1 s apart, as the demonstrations were recorded; the arm keeps moving between chunks."""
+    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, replan_every=4), hub="tcp/127.0.0.1:0")
+    la.start()
+    chunks = []
+    la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
+    try:
+        info = la.wait_ready(90)
+        assert info["policy"]["hz"] == 2.5
+        la.say(info["robot"]["instruction"], "r")
+        deadline = time.monotonic() + 30
+        while len(chunks) < 9 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        la.shutdown("test end")
+    assert len(chunks) >= 9, len(chunks)
+    arrivals = np.array([t for t, _ in chunks[1:]])
+    assert 0.3 < np.median(np.diff(arrivals)) < 0.8  # 0.4 s between chunks, not 0.1 s
+    for _, c in chunks:
+        assert np.allclose(np.diff(c.times_ns), 1e8)  # the bundle's 10 Hz
+    assert np.median([(c.times_ns[0] - c.obs_time_ns) for _, c in chunks]) == 1e8
+    rob = _clean_exit(la)
+    assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob

@@ -2,10 +2,10 @@
 
     python -m runtime.nodes.policy_node --config '{"bundle": "policy/bundles/demo"}'
 
-Runs in its own process, so inference (tens of ms) never blocks the 500 Hz controller. At most control_hz (bundle manifest,
-10 Hz) times a second, on the monotonic clock:
+Runs in its own process, so inference (tens of ms) never blocks the 500 Hz controller. At most hz (the bundle's
+control_hz, 10 Hz; divided by `replan_every`) times a second, on the monotonic clock:
 
-1. A tick is the arrival of a new frame of the first (primary) camera, at most control_hz a second, so
+1. A tick is the arrival of a new frame of the first (primary) camera, at most hz a second, so
    inference starts as soon as the observation exists (the camera rate sets the pace; with no frames the
    node still wakes every 1/hz to notice staleness). Observation time t_obs = that frame's capture time.
    The To-step history is taken at t_obs - k / hz (k = To-1 .. 0): per camera
@@ -53,7 +53,9 @@ class PolicyNodeConfig:
     command: str = ""  # an initial command (as if received on the bus at start)
     threads: int = 1  # onnxruntime intra-op threads (2 shared cores: 1 leaves one for the controller)
     seed: int = 0
-    control_hz: float = 0.0  # 0: the bundle's manifest rate
+    # Infer on every Nth tick only (1..the bundle's action horizon): less CPU, the same action rate. The
+    # chunk's actions stay 1/hz apart at the bundle's rate, the rate its demonstrations were recorded at.
+    replan_every: int = 1
 
 
 CONFIG = PolicyNodeConfig
@@ -133,7 +135,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     if not cfg.bundle:
         raise ValueError("policy node: no bundle given")
     bundle = Bundle.load(cfg.bundle, intra_op_num_threads=cfg.threads)
-    hz = cfg.control_hz or float(bundle.manifest["horizons"].get("control_hz", 10.0))
+    bundle.check_replan_every(cfg.replan_every)
+    hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
     To, (H, W) = bundle.obs_horizon, bundle.image_size
     dt_ns = int(round(1e9 / hz))
     rng = np.random.default_rng(cfg.seed)
@@ -173,13 +176,13 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
             commands.append(("initial", cfg.command))
         current: dict = {"text": None, "emb": None}
         stale_state = None
-        ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz, "tasks": bundle.tasks,
-                   "instructions": len(bundle.instructions)})
+        ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
+                   "tasks": bundle.tasks, "instructions": len(bundle.instructions)})
         last_infer = -1.0
         while not ctx.should_stop():
             got = new_frame.wait(1.0 / hz)
             new_frame.clear()
-            if got and time.monotonic() - last_infer < 0.9 / hz:
+            if got and time.monotonic() - last_infer < 0.9 * cfg.replan_every / hz:
                 # Camera faster than the policy: wait for a fresher frame rather than use this one late
                 # (sleeping to the next tick and then inferring on it added up to a frame period of latency).
                 continue
