@@ -65,7 +65,8 @@ def run_policy_bench(quick: bool = False, bundle: str | Path | None = None, thre
         proprio = rng.normal(size=(b.obs_horizon, b.proprio_dim)).astype(np.float32)
         emb = b.embed("pick up the red block and put it in the bowl")
         out = {"bundle": str(path) if bundle else f"fresh {m['config']['preset']} (untrained)",
-               "preset": m["config"]["preset"], "ddim_steps": len(m["ddim"]["timesteps"]),
+               "preset": m["config"]["preset"], "sampler": m.get("diffusion", {}).get("sampler", "ddim"),
+               "sampler_steps": b.sampler_steps,
                "load_ms": load_ms, "chunk": {}}
         for k in threads:
             bk = b if k == threads[0] else Bundle.load(path, intra_op_num_threads=k, verify_hashes=False)
@@ -89,7 +90,8 @@ def run_policy_bench(quick: bool = False, bundle: str | Path | None = None, thre
 
 
 def format_table(figures: dict) -> str:
-    lines = [f"policy bench: {figures['bundle']} ({figures['ddim_steps']} DDIM steps), load {figures['load_ms']:.0f} ms"]
+    lines = [f"policy bench: {figures['bundle']} ({figures['sampler_steps']} {figures['sampler']} steps), "
+             f"load {figures['load_ms']:.0f} ms"]
     for name, f in figures["chunk"].items():
         lines.append(f"  chunk  {name:10s} p50 {f['p50_ms']:7.2f} ms   p99 {f['p99_ms']:7.2f} ms")
     for key in ("obs_encoder", "denoise_step", "text_embed"):

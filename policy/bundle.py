@@ -105,8 +105,10 @@ def _check_manifest(m: dict) -> None:
           f"supported by this loader ({list(SUPPORTED_VERSIONS)}); re-export with a matching sudd")
     _need(m.get("opset") in SUPPORTED_OPSETS, f"opset {m.get('opset')!r} is outside the supported "
           f"{SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1}")
-    for key in ("horizons", "dims", "cameras", "image_size", "graphs", "ddim", "stats", "tokenizer", "files"):
+    for key in ("horizons", "dims", "cameras", "image_size", "graphs", "stats", "tokenizer", "files"):
         _need(key in m, f"manifest has no {key!r}")
+    _need(("ddim" in m) != ("euler" in m), "manifest needs exactly one sampler schedule, 'ddim' (DDPM) or 'euler' "
+          f"(flow matching); it has {[k for k in ('ddim', 'euler') if k in m] or 'neither'}")
     h, d = m["horizons"], m["dims"]
     ints = [h.get("obs"), h.get("pred"), h.get("action"), h.get("execute_from"), d.get("proprio"), d.get("action"),
             d.get("cond"), *m["image_size"]]
@@ -116,11 +118,19 @@ def _check_manifest(m: dict) -> None:
     _need(d.get("text") == TEXT_DIM and len(m["image_size"]) == 2 and m["cameras"], "bad text dim, image size or cameras")
     frame = m.get("action_layout", {}).get("frame", "base")
     _need(frame in FRAMES, f"action_layout frame {frame!r} is none of {list(FRAMES)}")
-    s = m["ddim"]
-    ts, ab, abp = s.get("timesteps", []), s.get("alpha_bar", []), s.get("alpha_bar_prev", [])
-    _need(len(ts) > 0 and len(ts) == len(ab) == len(abp), "ddim schedule lists are empty or differ in length")
-    _need(all(0 < a <= 1 for a in ab + abp) and all(a > b for a, b in zip(ts, ts[1:])),
-          "ddim schedule: alphas must lie in (0, 1] and timesteps descend")
+    if "ddim" in m:
+        s = m["ddim"]
+        ts, ab, abp = s.get("timesteps", []), s.get("alpha_bar", []), s.get("alpha_bar_prev", [])
+        _need(len(ts) > 0 and len(ts) == len(ab) == len(abp), "ddim schedule lists are empty or differ in length")
+        _need(all(0 < a <= 1 for a in ab + abp) and all(a > b for a, b in zip(ts, ts[1:])),
+              "ddim schedule: alphas must lie in (0, 1] and timesteps descend")
+    else:
+        s = m["euler"]
+        ts, sg, sgn = s.get("timesteps", []), s.get("sigma", []), s.get("sigma_next", [])
+        _need(len(ts) > 0 and len(ts) == len(sg) == len(sgn), "euler schedule lists are empty or differ in length")
+        _need(all(0 < a <= 1 for a in sg) and list(sgn) == list(sg[1:]) + [0.0]
+              and all(a > b for a, b in zip(ts, ts[1:])),
+              "euler schedule: noise levels must lie in (0, 1], descend to 0 and follow each other; timesteps descend")
     want = expected_graphs(m)
     for name, spec in want.items():
         got = m["graphs"].get(name, {})
@@ -214,8 +224,10 @@ class Bundle:
         layout = m.get("action_layout", {})
         self._rot = slice(*layout.get("rot6d", [3, 9]))
         self.action_frame = layout.get("frame", "base")  # bundles exported before the tcp frame: base
-        s = m["ddim"]
-        self._schedule = list(zip(s["timesteps"], s["alpha_bar"], s["alpha_bar_prev"]))
+        self._flow = "euler" in m  # flow matching: the denoiser predicts a velocity, integrated by Euler steps
+        s = m["euler"] if self._flow else m["ddim"]
+        self._schedule = list(zip(s["timesteps"], *((s["sigma"], s["sigma_next"]) if self._flow
+                                                     else (s["alpha_bar"], s["alpha_bar_prev"]))))
         self._clip = bool(m.get("diffusion", {}).get("clip_sample", True))
         self._cache: dict[str, np.ndarray] = {}
         self._refs = np.zeros((0, TEXT_DIM), np.float32)
@@ -351,16 +363,28 @@ class Bundle:
         if trace is not None:
             trace.append(cond)
         den = self.sessions["denoiser"]
-        for t, ab, ab_prev in self._schedule:
-            eps = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
+        for t, c, c_next in self._schedule:
+            out = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
             if trace is not None:
-                trace.append((x, t, eps))
-            x0 = (x - math.sqrt(1.0 - ab) * eps) / math.sqrt(ab)  # DDIM, eta = 0 (policy.schedule.ddim_step)
-            if self._clip:
-                x0 = x0.clip(-1.0, 1.0)
-            x = (math.sqrt(ab_prev) * x0 + math.sqrt(1.0 - ab_prev) * eps).astype(np.float32)
+                trace.append((x, t, out))
+            x = (self._flow_step if self._flow else self._ddim_step)(x, out, c, c_next).astype(np.float32)
         a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
         return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
+
+    def _ddim_step(self, x, eps, ab, ab_prev):  # DDIM, eta = 0 (as policy.schedule.ddim_step)
+        x0 = (x - math.sqrt(1.0 - ab) * eps) / math.sqrt(ab)
+        if self._clip:
+            x0 = x0.clip(-1.0, 1.0)
+        return math.sqrt(ab_prev) * x0 + math.sqrt(1.0 - ab_prev) * eps
+
+    def _flow_step(self, x, u, s, s_next):  # Euler on the velocity u = eps - a (as policy.schedule.flow_step)
+        if not self._clip:
+            return x + (s_next - s) * u
+        return (1.0 - s_next) * (x - s * u).clip(-1.0, 1.0) + s_next * (x + (1.0 - s) * u)
+
+    @property
+    def sampler_steps(self) -> int:
+        return len(self._schedule)
 
     def info(self) -> dict:
         m = self.manifest

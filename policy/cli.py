@@ -101,8 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="store the policy graphs' weights as float32 (default float16: half the bytes, same "
                          "speed; the manifest's weights.rounding says what the rounding changes)")
     ex.add_argument("--inference-steps", type=int, default=None, metavar="N",
-                    help="DDIM steps per chunk (default: the run's inference_steps); more steps give smoother "
-                         "chunks for more latency, see `sudd bench policy`")
+                    help="sampler steps per chunk, DDIM or (objective = flow) Euler (default: the run's "
+                         "inference_steps); more steps give smoother chunks for more latency, see `sudd bench policy`")
     ex.add_argument("--restore-text-encoder", type=Path, metavar="BUNDLE",
                     help="instead of exporting: write BUNDLE's text encoder and tokenizer back, then verify")
     ex.add_argument("--json", action="store_true", help="print the manifest (or the restore summary) as JSON")

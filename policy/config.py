@@ -68,7 +68,10 @@ class PolicyConfig:
     # diffusion
     num_train_timesteps: int = field(default=100, metadata=spec(2, 1000))
     beta_schedule: str = field(default="squaredcos_cap_v2", metadata=spec(choices=("squaredcos_cap_v2", "linear")))
-    inference_steps: int = field(default=8, metadata=spec(1, 1000, doc="DDIM steps"))
+    objective: str = field(default="ddpm", metadata=spec(choices=("ddpm", "flow"), doc=(
+        "ddpm: epsilon prediction, DDIM sampling; flow: flow matching (velocity of the straight noise-to-action "
+        "path), Euler sampling, good in few steps")))
+    inference_steps: int = field(default=8, metadata=spec(1, 1000, doc="DDIM or Euler steps"))
     clip_sample: bool = True
     # data
     include_failures: bool = False

@@ -143,6 +143,11 @@ class _StepGraph(torch.nn.Module):
         return self.unet.denoise(noisy, timestep, cond)
 
 
+# The manifest key holding the sampler's schedule, and what the denoiser graph predicts, per objective.
+SAMPLER_KEY = {"ddpm": "ddim", "flow": "euler"}
+PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
+
+
 def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Path | None = None, ema: bool = True,
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
            inference_steps: int | None = None) -> dict:
@@ -222,10 +227,11 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "graphs": specs,
             "tokenizer": {"dir": "tokenizer", "file": "tokenizer/tokenizer.json", "max_length": MAX_SEQ_LENGTH},
             "stats": {"file": "stats.npz", "keys": list(STAT_KEYS)},
-            "diffusion": {"num_train_timesteps": cfg.num_train_timesteps, "beta_schedule": cfg.beta_schedule,
-                          "prediction_type": "epsilon", "sampler": "ddim", "eta": 0.0,
-                          "clip_sample": cfg.clip_sample, "spacing": "trailing"},
-            "ddim": schedule_for(model),
+            "diffusion": {"objective": cfg.objective, "num_train_timesteps": cfg.num_train_timesteps,
+                          "beta_schedule": cfg.beta_schedule, "prediction_type": PREDICTS[cfg.objective],
+                          "sampler": SAMPLER_KEY[cfg.objective], "eta": 0.0, "clip_sample": cfg.clip_sample,
+                          "spacing": "trailing"},
+            SAMPLER_KEY[cfg.objective]: schedule_for(model),
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),

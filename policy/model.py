@@ -252,7 +252,8 @@ class ConditionalUnet1D(nn.Module):
 
 
 class DiffusionPolicy(nn.Module):
-    """ObsEncoder + ConditionalUnet1D, plus the epsilon-prediction DDPM loss (randomness passed in)."""
+    """ObsEncoder + ConditionalUnet1D, plus the denoising loss (randomness passed in): DDPM's epsilon
+    prediction, or flow matching's velocity with cfg.objective = "flow" (policy.schedule)."""
 
     def __init__(self, cfg: PolicyConfig):
         super().__init__()
@@ -290,7 +291,7 @@ class DiffusionPolicy(nn.Module):
 
     def loss(self, batch: dict, noise: torch.Tensor, timesteps: torch.Tensor,
              aux_noise: torch.Tensor | None = None, image_keep: torch.Tensor | None = None) -> torch.Tensor:
-        """MSE between the true and predicted noise of x_t = sqrt(ab_t) a0 + sqrt(1 - ab_t) eps.
+        """MSE of the denoiser's prediction (`denoise_target`) plus, with an aux head, of its points.
 
         batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
         (all normalized), aux (B, 6) (only with aux_target_weight, see policy.data.grasp_and_release);
@@ -307,16 +308,23 @@ class DiffusionPolicy(nn.Module):
         if self.cfg.aux_condition:
             fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
             cond = torch.cat([self.shown_features(features, image_keep), fed], dim=1)
-        loss = F.mse_loss(self.predict_added_noise(cond, batch["action"], noise, timesteps), noise)
+        loss = F.mse_loss(*self.denoise_target(cond, batch["action"], noise, timesteps))
         if self.aux_head is not None:
             loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_points(features), batch["aux"])
         return loss
 
-    def predict_added_noise(self, cond: torch.Tensor, action: torch.Tensor, noise: torch.Tensor,
-                            timesteps: torch.Tensor) -> torch.Tensor:
-        """Noise `action` to x_t with `noise` at `timesteps` and predict that noise back: (B, Tp, Da)."""
+    def denoise_target(self, cond: torch.Tensor, action: torch.Tensor, noise: torch.Tensor,
+                       timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Noise `action` with `noise` to the level of `timesteps`; (the denoiser's prediction, its target),
+        both (B, Tp, Da). ddpm: x_t = sqrt(ab_t) a + sqrt(1 - ab_t) eps, target eps; flow: x_s = (1 - s) a +
+        s eps, target the velocity eps - a."""
+        if self.cfg.objective == "flow":
+            from policy.schedule import flow_noise_level
+
+            s = flow_noise_level(timesteps, self.cfg.num_train_timesteps).view(-1, 1, 1).to(action.dtype)
+            return self((1 - s) * action + s * noise, timesteps, cond), noise - action
         ab = self.alphas_cumprod[timesteps].view(-1, 1, 1)
-        return self(ab.sqrt() * action + (1 - ab).sqrt() * noise, timesteps, cond)
+        return self(ab.sqrt() * action + (1 - ab).sqrt() * noise, timesteps, cond), noise
 
     def shown_features(self, features: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
         """The obs encoder's features as the denoiser sees them: images hidden where keep ((B,) of 0/1) is 0;

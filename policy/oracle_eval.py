@@ -87,12 +87,12 @@ class OracleAuxPolicy:
         import torch
 
         from policy.action_frame import from_tcp, orthonormalize_rot6d
-        from policy.sampling import ddim_sample
+        from policy.sampling import sample
 
         if noise is None:
             noise = (rng or np.random.default_rng()).standard_normal((self.pred_horizon, self.action_dim))
         cond = self.cond(images, proprio, text_embedding)
-        x = ddim_sample(self.model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None], self.schedule)
+        x = sample(self.model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None], self.schedule)
         a = orthonormalize_rot6d(self.normalizer.unnormalize_action(x[0].numpy()))
         return from_tcp(a, np.asarray(proprio)[-1, :9])
 

@@ -21,7 +21,7 @@ import torch
 from policy.config import TEXT_DIM
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
-from policy.sampling import ddim_sample, predict_chunk
+from policy.sampling import predict_chunk, sample
 
 STEP_TOL, CHUNK_TOL = 1e-4, 1e-3
 
@@ -54,7 +54,7 @@ def rounding_cost(fp32: DiffusionPolicy, rounded: DiffusionPolicy, normalizer: N
     """Max |chunk(rounded) - chunk(fp32)|, normalized and (position, columns 0:3) in metres; same inputs."""
     worst, pos = 0.0, 0.0
     for images, proprio, text, noise in _random_observations(fp32.cfg, normalizer, trials, seed):
-        x = [ddim_sample(m, _encode(m, normalizer, images, proprio, text), torch.from_numpy(noise)[None])[0].numpy()
+        x = [sample(m, _encode(m, normalizer, images, proprio, text), torch.from_numpy(noise)[None])[0].numpy()
              for m in (fp32, rounded)]
         worst = max(worst, float(np.abs(x[0] - x[1]).max()))
         a = [normalizer.unnormalize_action(v) for v in x]

@@ -1,4 +1,5 @@
-"""Inference in torch: the DDIM loop and the whole observation -> action-chunk path.
+"""Inference in torch: the sampling loop (DDIM, or Euler for flow matching) and the whole observation ->
+action-chunk path.
 
 This is the reference the exported bundle is checked against: `predict_chunk` takes exactly what
 `policy.bundle.Bundle.act` takes (full-size uint8 images, raw proprio, the text embedding, the initial noise)
@@ -14,26 +15,39 @@ import torch
 from policy.action_frame import from_tcp, orthonormalize_rot6d
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
-from policy.schedule import ddim_schedule, ddim_step
+from policy.schedule import ddim_schedule, ddim_step, flow_schedule, flow_step
 
 
 def schedule_for(model: DiffusionPolicy, steps: int | None = None) -> dict:
+    """The sampler's schedule for the model's objective: DDIM's (timesteps, alpha_bar, alpha_bar_prev) or
+    flow matching's (timesteps, sigma, sigma_next)."""
     cfg = model.cfg
-    return ddim_schedule(cfg.num_train_timesteps, steps or cfg.inference_steps, cfg.beta_schedule)
+    n = steps or cfg.inference_steps
+    if cfg.objective == "flow":
+        return flow_schedule(cfg.num_train_timesteps, n)
+    return ddim_schedule(cfg.num_train_timesteps, n, cfg.beta_schedule)
+
+
+def schedule_steps(schedule: dict) -> list[tuple[int, float, float]]:
+    """(timestep, coefficient, next coefficient) per step, whichever sampler the schedule is for."""
+    keys = ("sigma", "sigma_next") if "sigma" in schedule else ("alpha_bar", "alpha_bar_prev")
+    return list(zip(schedule["timesteps"], schedule[keys[0]], schedule[keys[1]]))
 
 
 @torch.no_grad()
-def ddim_sample(model: DiffusionPolicy, cond: torch.Tensor, noise: torch.Tensor, schedule: dict | None = None
-                ) -> torch.Tensor:
-    """(B, G) global cond, (B, Tp, Da) initial noise -> (B, Tp, Da) normalized actions (deterministic DDIM).
+def sample(model: DiffusionPolicy, cond: torch.Tensor, noise: torch.Tensor, schedule: dict | None = None
+           ) -> torch.Tensor:
+    """(B, G) global cond, (B, Tp, Da) initial noise -> (B, Tp, Da) normalized actions: deterministic DDIM,
+    or Euler steps of the velocity for a flow-matching model.
 
     The cond's FiLM projection is computed once for all steps, as the exported graphs do."""
     sch = schedule or schedule_for(model)
+    step = flow_step if "sigma" in sch else ddim_step
     film = model.unet.condition(cond)
     x = noise
-    for t, ab, ab_prev in zip(sch["timesteps"], sch["alpha_bar"], sch["alpha_bar_prev"]):
-        eps = model.unet.denoise(x, torch.full((x.shape[0],), int(t), dtype=torch.int64, device=x.device), film)
-        x = ddim_step(x, eps, ab, ab_prev, model.cfg.clip_sample)
+    for t, c, c_next in schedule_steps(sch):
+        out = model.unet.denoise(x, torch.full((x.shape[0],), int(t), dtype=torch.int64, device=x.device), film)
+        x = step(x, out, c, c_next, model.cfg.clip_sample)
     return x
 
 
@@ -49,6 +63,6 @@ def predict_chunk(model: DiffusionPolicy, normalizer: Normalizer, images: dict[s
             for c in model.cfg.cameras}
     p = torch.from_numpy(normalizer.normalize_proprio(proprio))[None]
     cond = model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
-    x = ddim_sample(model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None])
+    x = sample(model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None])
     a = orthonormalize_rot6d(normalizer.unnormalize_action(x[0].numpy()))
     return from_tcp(a, np.asarray(proprio)[-1, :9]) if model.cfg.action_frame == "tcp" else a

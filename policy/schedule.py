@@ -11,6 +11,11 @@ schedule from here, so the runtime-side loop in `policy.bundle` (which must not 
   The "leading" spacing of the original DDIM starts at t=84 (alpha_bar = 0.06), a mismatch with the
   N(0, I) initial sample that shows as a bias at few steps. The last step jumps to alpha_bar = 1 (x0).
 - Deterministic DDIM (eta = 0) with x0 clipped to [-1, 1], where every normalized action dimension lives.
+- Flow matching (objective "flow"; Lipman et al. 2023, Liu et al. 2023 "rectified flow"): the straight path
+  x_s = (1 - s) a + s eps from the action (s = 0) to noise (s = 1); the network predicts its velocity
+  u = eps - a and sampling integrates it with Euler steps from s = 1 to 0. Its timestep k (the network's
+  input, as DDPM's) is noise level s = (k + 1) / T, so the trailing timesteps serve both. A straight path is
+  followed exactly by any number of Euler steps, one included, where the predicted velocity is exact.
 """
 
 from __future__ import annotations
@@ -47,6 +52,32 @@ def ddim_schedule(num_train_timesteps: int = 100, inference_steps: int = 8,
     ab = alphas_cumprod(T, schedule)
     prev = np.concatenate([ab[ts[1:]], [1.0]])
     return {"timesteps": ts.tolist(), "alpha_bar": ab[ts].tolist(), "alpha_bar_prev": prev.tolist()}
+
+
+def flow_schedule(num_train_timesteps: int = 100, inference_steps: int = 8) -> dict:
+    """Euler steps of a flow-matching sampler as data: timesteps (descending), noise level s at each and at
+    its successor (the last goes to s = 0, the action)."""
+    T, n = num_train_timesteps, inference_steps
+    if not 1 <= n <= T:
+        raise ValueError(f"inference steps {n} must be in [1, {T}]")
+    ts = np.round(np.arange(T, 0, -T / n)).astype(np.int64) - 1
+    s = (ts + 1) / T
+    return {"timesteps": ts.tolist(), "sigma": s.tolist(), "sigma_next": np.concatenate([s[1:], [0.0]]).tolist()}
+
+
+def flow_noise_level(timesteps, num_train_timesteps: int):
+    """Noise level s in (0, 1] of integer timesteps (numpy arrays or torch tensors)."""
+    return (timesteps + 1) / num_train_timesteps
+
+
+def flow_step(x, u, sigma: float, sigma_next: float, clip: bool = True):
+    """One Euler step x_s -> x_s' of the velocity u = eps - a (numpy arrays or torch tensors). With `clip`,
+    the action estimate a = x - s u is clipped to [-1, 1] first (as DDIM clips x0), then the step lands on
+    the path through it: x_s' = (1 - s') a + s' eps with eps = x + (1 - s) u."""
+    if not clip:
+        return x + (sigma_next - sigma) * u
+    a = (x - sigma * u).clip(-1.0, 1.0)
+    return (1.0 - sigma_next) * a + sigma_next * (x + (1.0 - sigma) * u)
 
 
 def ddim_step(x, eps, alpha_bar: float, alpha_bar_prev: float, clip: bool = True):

@@ -53,7 +53,8 @@ class Validator:
                 noise = torch.randn(batch["action"].shape, generator=g).to(device)
                 t = torch.randint(0, model.cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(device)
                 features = model.obs_encoder(batch["images"], batch["proprio"], batch["text"])
-                err = model.predict_added_noise(model.cond_from(features), batch["action"], noise, t) - noise
+                pred, target = model.denoise_target(model.cond_from(features), batch["action"], noise, t)
+                err = pred - target
                 losses.append(err.square().mean(dim=(1, 2)).cpu())
                 if model.aux_head is not None:
                     pred = model.aux_points(features)[:, :3].float().cpu().numpy()

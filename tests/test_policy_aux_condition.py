@@ -73,7 +73,7 @@ def test_training_feeds_the_true_points_plus_scaled_noise():
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
         head = model.aux_points(features)
         fed = torch.cat([features, b["aux"] + 0.5 * z], dim=1)
-        want = mse(model.predict_added_noise(fed, b["action"], noise, t), noise) + mse(head, b["aux"])
+        want = mse(*model.denoise_target(fed, b["action"], noise, t)) + mse(head, b["aux"])
         torch.testing.assert_close(model.loss(b, noise, t, z), want)
         moved = dict(b, aux=b["aux"] + 1.0)
         denoiser_term = [float(model.loss(x, noise, t, z) - mse(head, x["aux"])) for x in (b, moved)]

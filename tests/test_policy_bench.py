@@ -12,7 +12,7 @@ CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"  # shared
 def test_bench_quick_returns_its_keys(monkeypatch):
     monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
     f = run_policy_bench(quick=True)
-    assert f["preset"] == "small" and f["ddim_steps"] == 8
+    assert f["preset"] == "small" and (f["sampler"], f["sampler_steps"]) == ("ddim", 8)
     for key in ("chunk", "obs_encoder", "denoise_step", "text_embed", "params", "bytes", "load_ms", "meets_target"):
         assert key in f, key
     for name in ("threads_2", "threads_1"):

@@ -207,7 +207,7 @@ def _bad_stats(p: Path):
     (_bad_stats, "action_scale has shape"),
     (lambda p: (p / "stats.npz").write_bytes(_flip((p / "stats.npz").read_bytes())), "content differs"),
     (lambda p: (p / "stats.npz").write_bytes(b"garbage"), "7 bytes, manifest says"),
-    (lambda p: _edit(p, lambda m: m.pop("ddim")), "no 'ddim'"),
+    (lambda p: _edit(p, lambda m: m.pop("ddim")), "exactly one sampler schedule"),
 ])
 def test_load_refuses_broken_bundles(bundle_dir, tmp_path, breakage, reason):
     broken = _broken_copy(bundle_dir, tmp_path / "b")

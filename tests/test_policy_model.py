@@ -9,7 +9,7 @@ from policy.model import (ConditionalUnet1D, DiffusionPolicy, ImageEncoder, ObsE
                           film_dim, prepare_images)
 from policy.normalize import Normalizer
 from policy.action_frame import orthonormalize_rot6d
-from policy.sampling import ddim_sample
+from policy.sampling import sample
 from policy.schedule import alphas_cumprod, ddim_schedule, ddim_step
 from policy.testing import TINY
 from sim.config import ConfigError
@@ -118,7 +118,7 @@ def test_loss_and_sampler_shapes():
     loss = model.loss(batch, torch.randn(B, cfg.pred_horizon, 10), torch.randint(0, 100, (B,)))
     assert loss.ndim == 0 and torch.isfinite(loss)
     cond = model.encode(batch["images"], batch["proprio"], batch["text"])
-    x = ddim_sample(model, cond, torch.randn(B, cfg.pred_horizon, 10))
+    x = sample(model, cond, torch.randn(B, cfg.pred_horizon, 10))
     assert x.shape == (B, cfg.pred_horizon, 10) and float(x.abs().max()) <= 1.0 + 1e-5
 
 
