@@ -138,8 +138,12 @@ def _train(args) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
+        val = summary.get("validation") or {}
+        sampled = f", sampled chunks {val['val_chunk_cm']:.1f} cm from the recorded (unseen episodes)" \
+            if "val_chunk_cm" in val else ""
         print(f"run {summary['run_dir']}: step {summary['step']}/{summary['total_steps']}, "
-              f"loss {summary['final_loss']:.4f}, checkpoint {summary.get('checkpoint')}, plot {summary['plot']}")
+              f"loss {summary['final_loss']:.4f}{sampled}, checkpoint {summary.get('checkpoint')}, "
+              f"plot {summary['plot']}")
     return 0
 
 

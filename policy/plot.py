@@ -36,6 +36,10 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
     if checks:
         loss += [line("unseen episodes", checks, "val_loss"), line("training episodes", checks, "fit_loss")]
     panels = [("loss", loss, True), ("lr", [line("lr", train, "lr")], False)]
+    sampled = [r for r in checks if "val_chunk_cm" in r]  # rows written before it was logged have none
+    if sampled:
+        panels.append(("sampled chunk vs recorded [cm]", [line("unseen episodes", sampled, "val_chunk_cm"),
+                                                          line("training episodes", sampled, "fit_chunk_cm")], False))
     grasp = [r for r in checks if "val_grasp_cm" in r]
     if grasp:
         lines = [line("unseen episodes", grasp, "val_grasp_cm"), line("training episodes", grasp, "fit_grasp_cm")]

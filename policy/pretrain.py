@@ -107,7 +107,7 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     if split:
         val = PolicyDataset(data_dir, cfg, train=False, normalizer=fit.normalizer, embedder=embedder,
                             uint8_images=True, split="val", max_cache_bytes=0)
-        validator = Validator(val, fit, seed=cfg.seed)
+        validator = Validator(val, fit, seed=cfg.seed, chunks=False)
     offsets = measure_offsets(data_dir)
     views = Views(views_dir, cfg, fit.normalizer, embedder, offsets)
     torch.manual_seed(cfg.seed)

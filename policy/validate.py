@@ -7,7 +7,10 @@ on unseen ones (always answering the training mean: 18 cm). Measured every `val_
 samples, fixed noise and fixed diffusion timesteps (so successive rows compare), with the EMA weights and
 centre crops:
 
-  loss      the diffusion (noise-prediction) MSE
+  loss      the denoising MSE (noise prediction; velocity with objective = flow: not comparable across them)
+  chunk_cm  median distance between the positions of the chunk the policy samples (its inference_steps, fixed
+            noise) and the recorded ones, over the executed actions: what the policy would do, comparable
+            across objectives and sampler steps (a multimodal policy may sample another good way: not 0)
   grasp_cm  median error of the auxiliary head's grasp point (only with aux_target_weight > 0)
   pregrasp_cm  the same over the samples observed before the gripper closes, where the policy aims: after
             the grasp the object rides in the fingers and the point it was taken from is not in the images
@@ -27,11 +30,13 @@ from policy.data import AUX_TCP_SCALE, PolicyDataset, finish_images, to_device
 
 
 class Validator:
-    def __init__(self, val: PolicyDataset, fit: PolicyDataset, samples: int = 512, batch: int = 64, seed: int = 0):
+    def __init__(self, val: PolicyDataset, fit: PolicyDataset, samples: int = 512, batch: int = 64, seed: int = 0,
+                 chunks: bool = True):
+        """chunks=False leaves chunk_cm out (pretraining: its denoiser is not trained)."""
         rng = np.random.default_rng(seed)
         self.sets = {name: (ds, rng.choice(len(ds), min(samples, len(ds)), replace=False))
                      for name, ds in (("val", val), ("fit", fit))}
-        self.batch, self.seed = batch, seed
+        self.batch, self.seed, self.chunks = batch, seed, chunks
         self.normalizer = fit.normalizer
         points = {name: self._metres(np.stack([ds.aux_target(int(i))[:3].numpy() for i in idx]))
                   for name, (ds, idx) in self.sets.items()}
@@ -45,7 +50,7 @@ class Validator:
         out = {}
         for name, (ds, idx) in self.sets.items():
             g = torch.Generator().manual_seed(self.seed)
-            losses, errors = [], []
+            losses, errors, chunk = [], [], []
             before = np.array([ds.before_grasp(int(i)) for i in idx])
             for lo in range(0, len(idx), self.batch):
                 batch = to_device(default_collate([ds[int(i)] for i in idx[lo:lo + self.batch]]), device)
@@ -53,13 +58,17 @@ class Validator:
                 noise = torch.randn(batch["action"].shape, generator=g).to(device)
                 t = torch.randint(0, model.cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(device)
                 features = model.obs_encoder(batch["images"], batch["proprio"], batch["text"])
-                pred, target = model.denoise_target(model.cond_from(features), batch["action"], noise, t)
-                err = pred - target
-                losses.append(err.square().mean(dim=(1, 2)).cpu())
+                cond = model.cond_from(features)
+                pred, target = model.denoise_target(cond, batch["action"], noise, t)
+                losses.append((pred - target).square().mean(dim=(1, 2)).cpu())
+                if self.chunks:
+                    chunk.append(self._chunk_cm(model, cond, batch["action"], g))
                 if model.aux_head is not None:
                     pred = model.aux_points(features)[:, :3].float().cpu().numpy()
                     errors.append(self._metres(pred) - self._metres(batch["aux"][:, :3].cpu().numpy()))
             out[f"{name}_loss"] = float(torch.cat(losses).mean())
+            if chunk:
+                out[f"{name}_chunk_cm"] = float(np.median(np.concatenate(chunk)))
             if errors:
                 miss = np.linalg.norm(np.concatenate(errors), axis=1) * 100
                 out[f"{name}_grasp_cm"] = float(np.median(miss))
@@ -68,6 +77,17 @@ class Validator:
                 out["guess_grasp_cm"] = self.guess_cm
         model.train(was_training)
         return out
+
+    def _chunk_cm(self, model, cond: torch.Tensor, action: torch.Tensor, g: torch.Generator) -> np.ndarray:
+        """Per sample: mean position distance (cm) of the executed rows of a sampled chunk from the recorded."""
+        from policy.sampling import sample
+
+        cfg = model.cfg
+        noise = torch.randn(action.shape, generator=g).to(action.device)
+        ex = slice(cfg.obs_horizon - 1, cfg.obs_horizon - 1 + cfg.action_horizon)
+        got = self.normalizer.unnormalize_action(sample(model, cond, noise)[:, ex].float().cpu().numpy())
+        want = self.normalizer.unnormalize_action(action[:, ex].float().cpu().numpy())
+        return np.linalg.norm(got[..., :3] - want[..., :3], axis=-1).mean(axis=1) * 100
 
     def _metres(self, p: np.ndarray) -> np.ndarray:
         """Aux grasp points in the head's units -> metres (tcp frame: a scale; base frame: the action stats)."""

@@ -102,6 +102,35 @@ def test_ddp_gloo_two_processes_stay_in_sync(data_dir, tmp_path):
     assert info["step"] == 3
 
 
+def test_chunk_error_is_the_distance_of_the_sampled_positions_from_the_recorded(tmp_path, monkeypatch):
+    import policy.sampling
+    from policy.validate import Validator
+
+    data = synthetic_dataset(tmp_path / "data", episodes=8, smooth=True)
+    cfg = load_policy_config(TINY, {"val_fraction": 0.3})
+    val = PolicyDataset(data, cfg, train=False, embedder=hash_embedder, split="val")
+    fit = PolicyDataset(data, cfg, train=False, embedder=hash_embedder, split="train", normalizer=val.normalizer)
+    shift = torch.zeros(cfg.action_dim)
+    shift[1] = 0.2  # normalized units along y; the other rows and columns exactly as recorded
+    recorded = {}
+
+    def fake_sample(model, cond, noise, schedule=None):
+        return recorded["action"] + shift
+
+    monkeypatch.setattr(policy.sampling, "sample", fake_sample)
+    check = Validator(val, fit, samples=16, batch=8)
+    real = check._chunk_cm
+
+    def spy(model, cond, action, g):
+        recorded["action"] = action
+        return real(model, cond, action, g)
+
+    monkeypatch.setattr(check, "_chunk_cm", spy)
+    got = check(DiffusionPolicy(cfg), torch.device("cpu"))
+    want = 0.2 / float(val.normalizer.action_scale[1]) * 100
+    assert got["val_chunk_cm"] == pytest.approx(want, rel=1e-4) and got["fit_chunk_cm"] == pytest.approx(want, rel=1e-4)
+
+
 def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     from policy.data import episode_success, is_validation
     from policy.validate import Validator
@@ -119,7 +148,8 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     first = check(model, torch.device("cpu"))
     assert first == check(model, torch.device("cpu"))  # fixed samples, noise and timesteps
     assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm", "guess_grasp_cm",
-                          "val_pregrasp_cm", "fit_pregrasp_cm"}
+                          "val_pregrasp_cm", "fit_pregrasp_cm", "val_chunk_cm", "fit_chunk_cm"}
+    assert "val_chunk_cm" not in Validator(val, fit, samples=16, batch=8, chunks=False)(model, torch.device("cpu"))
     # before the grasp = the newest observed step precedes the gripper's first close command
     for ds, idx in check.sets.values():
         flags = []
