@@ -11,7 +11,7 @@ import json
 import math
 from pathlib import Path
 
-COLORS = ("royalblue", "darkorange", "seagreen")
+COLORS = ("royalblue", "darkorange", "seagreen", "dimgray")  # the fourth: a reference line (constant guess)
 Line = tuple[str, list[int], list[float]]  # label, steps, values
 
 
