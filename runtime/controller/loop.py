@@ -131,8 +131,9 @@ class ControllerLoop(LoopRunner):
 
     def latency_estimate(self) -> float | None:
         """Cross-correlation estimate of the execution latency over the last window (s), or None."""
-        with self._lock:
-            est = self.latency.estimate()
+        with self._lock:  # copy under the lock, estimate outside it: the control cycle must not wait
+            snapshot = self.latency.copy()
+        est = snapshot.estimate()
         if est is not None:
             self.last_latency_estimate = est
         return est
