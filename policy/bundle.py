@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,7 @@ import onnxruntime as ort
 
 from policy.action_frame import FRAMES, from_tcp, orthonormalize_rot6d
 from policy.onnx_opsets import onnx_opsets
+from policy.schedule import schedule_steps, step_function
 
 FORMAT = "sudd-policy-bundle"
 SUPPORTED_VERSIONS = (1,)
@@ -224,10 +224,8 @@ class Bundle:
         layout = m.get("action_layout", {})
         self._rot = slice(*layout.get("rot6d", [3, 9]))
         self.action_frame = layout.get("frame", "base")  # bundles exported before the tcp frame: base
-        self._flow = "euler" in m  # flow matching: the denoiser predicts a velocity, integrated by Euler steps
-        s = m["euler"] if self._flow else m["ddim"]
-        self._schedule = list(zip(s["timesteps"], *((s["sigma"], s["sigma_next"]) if self._flow
-                                                     else (s["alpha_bar"], s["alpha_bar_prev"]))))
+        s = m["euler"] if "euler" in m else m["ddim"]  # euler: flow matching (the denoiser predicts a velocity)
+        self._schedule, self._step = schedule_steps(s), step_function(s)
         self._clip = bool(m.get("diffusion", {}).get("clip_sample", True))
         self._cache: dict[str, np.ndarray] = {}
         self._refs = np.zeros((0, TEXT_DIM), np.float32)
@@ -367,20 +365,9 @@ class Bundle:
             out = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
             if trace is not None:
                 trace.append((x, t, out))
-            x = (self._flow_step if self._flow else self._ddim_step)(x, out, c, c_next).astype(np.float32)
+            x = self._step(x, out, c, c_next, self._clip).astype(np.float32)
         a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
         return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
-
-    def _ddim_step(self, x, eps, ab, ab_prev):  # DDIM, eta = 0 (as policy.schedule.ddim_step)
-        x0 = (x - math.sqrt(1.0 - ab) * eps) / math.sqrt(ab)
-        if self._clip:
-            x0 = x0.clip(-1.0, 1.0)
-        return math.sqrt(ab_prev) * x0 + math.sqrt(1.0 - ab_prev) * eps
-
-    def _flow_step(self, x, u, s, s_next):  # Euler on the velocity u = eps - a (as policy.schedule.flow_step)
-        if not self._clip:
-            return x + (s_next - s) * u
-        return (1.0 - s_next) * (x - s * u).clip(-1.0, 1.0) + s_next * (x + (1.0 - s) * u)
 
     @property
     def sampler_steps(self) -> int:

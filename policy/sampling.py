@@ -15,7 +15,7 @@ import torch
 from policy.action_frame import from_tcp, orthonormalize_rot6d
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
-from policy.schedule import ddim_schedule, ddim_step, flow_schedule, flow_step
+from policy.schedule import ddim_schedule, flow_schedule, schedule_steps, step_function
 
 
 def schedule_for(model: DiffusionPolicy, steps: int | None = None) -> dict:
@@ -28,12 +28,6 @@ def schedule_for(model: DiffusionPolicy, steps: int | None = None) -> dict:
     return ddim_schedule(cfg.num_train_timesteps, n, cfg.beta_schedule)
 
 
-def schedule_steps(schedule: dict) -> list[tuple[int, float, float]]:
-    """(timestep, coefficient, next coefficient) per step, whichever sampler the schedule is for."""
-    keys = ("sigma", "sigma_next") if "sigma" in schedule else ("alpha_bar", "alpha_bar_prev")
-    return list(zip(schedule["timesteps"], schedule[keys[0]], schedule[keys[1]]))
-
-
 @torch.no_grad()
 def sample(model: DiffusionPolicy, cond: torch.Tensor, noise: torch.Tensor, schedule: dict | None = None
            ) -> torch.Tensor:
@@ -42,7 +36,7 @@ def sample(model: DiffusionPolicy, cond: torch.Tensor, noise: torch.Tensor, sche
 
     The cond's FiLM projection is computed once for all steps, as the exported graphs do."""
     sch = schedule or schedule_for(model)
-    step = flow_step if "sigma" in sch else ddim_step
+    step = step_function(sch)
     film = model.unet.condition(cond)
     x = noise
     for t, c, c_next in schedule_steps(sch):

@@ -1,8 +1,8 @@
-"""Noise schedules and the DDIM update, in plain numpy (also applied to torch tensors: same arithmetic).
+"""Noise schedules and the sampler updates, in plain numpy (also applied to torch tensors: same arithmetic).
 
-numpy-only on purpose: training (torch), export (baked into the manifest) and the checks all take the
-schedule from here, so the runtime-side loop in `policy.bundle` (which must not import torch, and restates
-`ddim_step` in three lines) runs exactly the numbers the policy was trained and verified with.
+numpy-only on purpose: training (torch), export (baked into the manifest), the checks and the runtime-side
+loop in `policy.bundle` (which must not import torch) all take the schedule and the update from here, so the
+bundle runs exactly the numbers the policy was trained and verified with.
 
 - DDPM betas: `squaredcos_cap_v2` (Nichol & Dhariwal 2021: alpha_bar(t) = cos^2((t/T + 0.008)/1.008 * pi/2),
   betas capped at 0.999), the Diffusion Policy default; `linear` (1e-4..0.02) for comparison.
@@ -78,6 +78,17 @@ def flow_step(x, u, sigma: float, sigma_next: float, clip: bool = True):
         return x + (sigma_next - sigma) * u
     a = (x - sigma * u).clip(-1.0, 1.0)
     return (1.0 - sigma_next) * a + sigma_next * (x + (1.0 - sigma) * u)
+
+
+def schedule_steps(schedule: dict) -> list[tuple[int, float, float]]:
+    """(timestep, coefficient, next coefficient) per step of a DDIM or flow schedule (as the manifest holds it)."""
+    keys = ("sigma", "sigma_next") if "sigma" in schedule else ("alpha_bar", "alpha_bar_prev")
+    return list(zip(schedule["timesteps"], schedule[keys[0]], schedule[keys[1]]))
+
+
+def step_function(schedule: dict):
+    """The update that goes with a schedule: `flow_step` for a flow schedule, else `ddim_step`."""
+    return flow_step if "sigma" in schedule else ddim_step
 
 
 def ddim_step(x, eps, alpha_bar: float, alpha_bar_prev: float, clip: bool = True):

@@ -78,8 +78,6 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from runtime.eval_progress import GraspProgress
     from sim.twins.rig import SimRig
 
-    if hasattr(bundle, "check_replan_every"):
-        bundle.check_replan_every(replan_every)
     ep = build_episode(task, seed, dr, "fast", holdout=holdout)
     family, inst = ep.task, ep.instance
     if paraphrase:

@@ -9,6 +9,8 @@ to sub-cycle resolution. With too little motion (the arm holding still) there is
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 
@@ -30,10 +32,7 @@ class LatencyEstimator:
 
     def copy(self) -> "LatencyEstimator":
         """A snapshot to estimate from outside the control thread's lock."""
-        out = LatencyEstimator.__new__(LatencyEstimator)
-        out.dt, out.n, out.max_lag, out._i = self.dt, self.n, self.max_lag, self._i
-        out._cmd, out._meas = self._cmd.copy(), self._meas.copy()
-        return out
+        return copy.deepcopy(self)
 
     def mark_gap(self) -> None:
         """No command this cycle (stopped): keep the window's time axis regular."""
