@@ -10,15 +10,18 @@ Key layout (``<robot>`` = BusConfig.robot; topics are given relative, e.g. ``bus
     sudd/<robot>/arm/state                RobotState       control: INTERACTIVE_HIGH, drop, express
     sudd/<robot>/gripper/state            GripperStatus    control
     sudd/<robot>/policy/chunk             ActionChunk      control
-    sudd/<robot>/command/language         LanguageCommand  control
-    sudd/<robot>/safety/event             StatusEvent      control
+    sudd/<robot>/command/language         LanguageCommand  event: INTERACTIVE_LOW, block, express
+    sudd/<robot>/safety/event             StatusEvent      event
     sudd/<robot>/safety/estop             StatusEvent      estop: REAL_TIME, block, express
     sudd/<robot>/telemetry/<stage>        Telemetry        telemetry: DATA_LOW, drop
     ====================================  ===============  ========================================
 
 Drop semantics: Zenoh's DROP discards what does not fit the transmit queue (after ~1 ms); consumers read
 images with `latest()`, a one-slot mailbox that always holds the newest, so the consumer sees drop-oldest.
-Control state is also "newest wins"; only the estop blocks (it must arrive, and it is tiny and rare).
+Control state is also "newest wins". What must arrive blocks instead: the estop, and the rare, small events and
+operator commands (a protective-stop report dropped because the arm-state lane was momentarily full would
+leave the console silent). Each blocking class has a priority lane of its own, because Zenoh queues all of
+one priority in one pipeline and a blocked message stalls everything behind it in that lane.
 """
 
 from __future__ import annotations
@@ -58,12 +61,13 @@ class QoS:
 _CTRL = QoS(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP, True, False)
 QOS = {"image": QoS(zenoh.Priority.DATA, zenoh.CongestionControl.DROP, False, True), "control": _CTRL,
        "estop": QoS(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, True, False),
+       "event": QoS(zenoh.Priority.INTERACTIVE_LOW, zenoh.CongestionControl.BLOCK, True, False),
        "telemetry": QoS(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP, False, False)}
 # relative topic pattern -> (message type, QoS class); {x} is one key segment
 TOPICS = {"camera/{name}/color": (m.CameraFrame, "image"), "camera/{name}/depth": (m.CameraFrame, "image"),
           ARM_STATE: (m.RobotState, "control"), GRIPPER_STATE: (m.GripperStatus, "control"),
-          POLICY_CHUNK: (m.ActionChunk, "control"), LANGUAGE_COMMAND: (m.LanguageCommand, "control"),
-          SAFETY_EVENT: (m.StatusEvent, "control"), ESTOP: (m.StatusEvent, "estop"),
+          POLICY_CHUNK: (m.ActionChunk, "control"), LANGUAGE_COMMAND: (m.LanguageCommand, "event"),
+          SAFETY_EVENT: (m.StatusEvent, "event"), ESTOP: (m.StatusEvent, "estop"),
           "telemetry/{stage}": (m.Telemetry, "telemetry")}
 SHM_MIN_BYTES = 32 * 1024  # below this a copy over the socket is as fast as a shared-memory handle
 SEGMENT = re.compile(r"[A-Za-z0-9_-]{1,64}")  # one key segment: a robot, camera or stage name
