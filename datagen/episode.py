@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from datagen.dart import joint_offsets
 from datagen.plan import PRIMITIVES, describe
 from datagen.planner import make_planner
 from datagen.primitives import GRASP_SECONDS, PrimitiveFailed, Primitives
@@ -52,6 +53,10 @@ class DatagenConfig:
     perturb_grasp: float = field(default=0.0, metadata=spec(0.0, 1.0,
                                  doc="probability that a pick's gripper closes early, above the object (a "
                                      "missed grasp), so the data holds regrasps; 0 leaves episodes unchanged"))
+    path_noise_cm: float = field(default=0.0, metadata=spec(0.0, 5.0, "cm", doc=(
+        "DART noise injection (datagen/dart.py): the executed TCP path is pushed off the plan while it moves "
+        "by a smooth random offset of this std per axis, the recorded actions stay the plan's, so the policy "
+        "learns to steer back; 0 leaves episodes exactly as without it")))
     holdout_colors: tuple[str, ...] = field(default=(), metadata=spec(choices=OBJECT_COLORS,
                                             doc="object colours never used (kept for a held-out evaluation)"))
     holdout_shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES,
@@ -107,6 +112,14 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     retries, attempts, completed = 0, [], 0
     # Its own stream, so that perturb = 0 leaves every other draw (and the episode) unchanged.
     perturb_rng = np.random.default_rng([int(seed), 0x5EED])
+    dart_rng = np.random.default_rng([int(seed), 0xDA27])
+
+    def run(motion: Motion) -> None:
+        offsets = None
+        if cfg.path_noise_cm > 0:
+            offsets = joint_offsets(motion, prims.kin, world.timestep, dart_rng, cfg.path_noise_cm / 100.0)
+        execute(world, motion, observer=recorder, offsets=offsets)
+
     tries = [0] * len(plan.subtasks)
     index = 0
     recorder.subtask = 0
@@ -125,7 +138,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                     motion = _missed(motion, perturb_rng)
                     reason = "perturbed: gripper closed above the object"
                 executed = True
-                execute(world, motion, observer=recorder)
+                run(motion)
                 ok = run_check(sub.check, state, scene)
             except PrimitiveFailed as exc:
                 reason = f"primitive failed: {exc}"
@@ -144,7 +157,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                 # The world changed (or sampling keeps failing from here): recover — open, retreat, home — and
                 # retry with a fresh sample. Recovery steps keep the subtask's label, so the policy learns them.
                 try:
-                    execute(world, prims.recover(), observer=recorder)
+                    run(prims.recover())
                 except PrimitiveFailed as exc:
                     attempts[-1]["reason"] += f"; recovery failed: {exc}"
                 index = _resume_point(plan, index, state)
@@ -169,6 +182,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
             "sim_seconds": round(world.time, 3),
             "holdout": {"colors": list(holdout.colors), "shapes": list(holdout.shapes), "split": holdout.split},
         }
+        if cfg.path_noise_cm > 0:  # only then: datasets made without it keep their content hash
+            meta["path_noise_cm"] = cfg.path_noise_cm
         return recorder.finish(meta)
     finally:
         recorder.close()

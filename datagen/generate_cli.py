@@ -41,6 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     gen.add_argument("--perturb-grasp", type=float, default=0.0, metavar="P",
                      help="probability that a pick's gripper closes early, above the object (a missed grasp), "
                           "so the data holds regrasps")
+    gen.add_argument("--path-noise-cm", type=float, default=0.0, metavar="CM",
+                     help="DART noise injection: push the executed path off the plan while the arm moves by a smooth "
+                          "offset of this std (cm per axis) while the actions stay the plan's, so the policy "
+                          "learns to steer back to it (0-5; default 0: off)")
     gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                      help="never use this object colour (repeatable), so `sudd eval --heldout` can test it")
     gen.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
@@ -67,6 +71,7 @@ def _generate(args) -> int:
     cfg = load_config(DatagenConfig, {
         "dr": args.dr, "fidelity": args.fidelity, "max_retries": args.max_retries, "label": args.label,
         "perturb": args.perturb, "perturb_grasp": args.perturb_grasp,
+        "path_noise_cm": args.path_noise_cm,
         "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
     summary = generate(tasks, args.episodes, args.out, args.workers, partial(run_episode, cfg=cfg),

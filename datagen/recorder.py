@@ -38,13 +38,15 @@ class Recorder:
         self._subtasks: list[int] = []
         self._times: list[float] = []
 
-    def __call__(self, world, label: str = "") -> None:
+    def __call__(self, world, label: str = "", planned: np.ndarray | None = None) -> None:
+        """`planned`: the joints the plan commands now when the executed ones are perturbed (datagen.dart);
+        the action is then the plan's target, not the perturbed command."""
         if world.time + 1e-9 < self.next_t:
             return
         self.next_t += self.period
-        self.sample()
+        self.sample(planned)
 
-    def sample(self) -> None:
+    def sample(self, planned: np.ndarray | None = None) -> None:
         w = self.world
         for name in CAMERAS:
             img = self._cams.rgb(CAMERA_NAMES[name])
@@ -52,7 +54,7 @@ class Recorder:
         T = w.tcp_pose()
         q = w.arm_q() + self._rng.normal(0.0, self._sensor.q_noise_std, 6) if self._sensor.q_noise_std else w.arm_q()
         self._proprio.append(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [w.gripper_position()], q]))
-        Tc = self.kin.fk(w.arm_target())
+        Tc = self.kin.fk(w.arm_target() if planned is None else planned)
         self._target.append(np.concatenate([Tc[:3, 3], rot6d(Tc[:3, :3]), [w.gripper_command()]]))
         self._subtasks.append(self.subtask)
         self._times.append(w.time)

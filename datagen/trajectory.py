@@ -93,19 +93,24 @@ class Motion:
         return Motion(out)
 
 
-def execute(world, motion: Motion, observer=None) -> None:
+def execute(world, motion: Motion, observer=None, offsets: np.ndarray | None = None) -> None:
     """Run `motion` on `world` at the physics rate: one joint target and one mj_step per 2 ms.
 
     The gripper command is set at the start of each segment. `observer(world, label)` is called after
     every physics step with the running segment's label (recorders subsample it to their own rate).
+    `offsets` (steps, 6), one row per physics step (datagen.dart), are added to the commanded joints; the
+    observer is then called as `observer(world, label, planned)` with the planned joints, what to record
+    as the action.
     """
     dt = world.timestep
+    k = 0
     for seg in motion.segments:
         world.set_gripper(seg.gripper)
         n = int(round(seg.duration / dt))
         targets = seg.at(seg.times[0] + dt * np.arange(1, n + 1))
         for q in targets:
-            world.set_arm_target(q)
+            world.set_arm_target(q if offsets is None else q + offsets[k])
             world.step()
             if observer is not None:
-                observer(world, seg.label)
+                observer(world, seg.label) if offsets is None else observer(world, seg.label, q)
+            k += 1

@@ -1,0 +1,81 @@
+"""DART noise injection (datagen/dart.py): the executed path leaves the plan, the recorded actions do not."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from datagen.dart import envelope, joint_offsets, smooth_offsets, step_labels
+from datagen.episode import DatagenConfig, run_episode
+from datagen.trajectory import Motion, Segment
+from sim.kinematics import Kinematics
+from sim.robot import TCP_OFFSET_Z
+
+DT = 0.002
+HOME = np.array([0.0, -1.57, 1.57, -1.57, -1.57, 0.0])
+
+
+def _motion() -> Motion:
+    q1 = HOME + np.array([0.4, 0.2, -0.2, 0.0, 0.0, 0.0])
+    move = Segment(np.linspace(0.0, 2.0, 11), np.linspace(HOME, q1, 11), 0.0, "move to pre-grasp")
+    approach = Segment(np.linspace(0.0, 1.0, 6), np.linspace(q1, q1 + 0.05, 6), 0.0, "approach")
+    return Motion([move, approach, Segment.hold(q1 + 0.05, 0.5, 1.0, "grasp")])
+
+
+def test_envelope_is_off_at_the_ends_and_while_the_gripper_acts_and_ramps_in_between():
+    labels = step_labels(_motion(), DT)
+    assert len(labels) == round(3.5 / DT)
+    e = envelope(labels, DT, fade_s=0.5)
+    assert e[0] == 0.0 and e[-1] == 0.0
+    grasp = np.array([lab == "grasp" for lab in labels])
+    assert np.all(e[grasp] == 0.0)  # the gripper closes exactly where the plan says
+    assert np.all(np.abs(np.diff(e)) <= DT / 0.5 + 1e-12)  # no jumps: ramps of fade_s
+    assert e.max() == 1.0 and np.all((0.0 <= e) & (e <= 1.0))
+
+
+def test_offsets_have_the_asked_spread_and_move_smoothly():
+    rng = np.random.default_rng(0)
+    d = smooth_offsets(round(200.0 / DT), DT, sigma=0.015, tau_s=1.0, rng=rng)
+    assert d.shape == (round(200.0 / DT), 3)
+    assert 0.010 < float(d.std(axis=0).mean()) < 0.018  # the box filter takes a little off the OU's std
+    assert float(np.abs(np.diff(d, axis=0)).max()) < 0.2 * DT  # < 0.2 m/s: nothing for the servo to chase
+
+
+def test_joint_offsets_translate_the_tcp_by_the_enveloped_offset_and_keep_its_rotation():
+    kin = Kinematics.with_tcp_z("ur5e", TCP_OFFSET_Z)
+    motion = _motion()
+    dq = joint_offsets(motion, kin, DT, np.random.default_rng(3), sigma=0.02)
+    rng = np.random.default_rng(3)
+    labels = step_labels(motion, DT)
+    want = smooth_offsets(len(labels), DT, 0.02, 1.0, rng) * envelope(labels, DT, 0.5)[:, None]
+    planned = np.concatenate([s.at(s.times[0] + DT * np.arange(1, round(s.duration / DT) + 1))
+                              for s in motion.segments])
+    assert np.abs(want).max() > 0.01  # the test would pass with no offset otherwise
+    for k in range(0, len(planned), 97):
+        T0, T1 = kin.fk(planned[k]), kin.fk(planned[k] + dq[k])
+        moved = T1[:3, 3] - T0[:3, 3]  # first order in the offset: within 10 % of it (~1 mm at 4 cm)
+        assert np.linalg.norm(moved - want[k]) <= 0.1 * np.linalg.norm(want[k]) + 1e-5, (k, moved, want[k])
+        assert np.degrees(np.arccos(np.clip((np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1) / 2, -1, 1))) < 0.5
+
+
+@pytest.fixture(scope="module")
+def clean_and_noisy():
+    cfg = DatagenConfig(dr="light", max_retries=2)
+    return run_episode("pick_place", 0, cfg), run_episode("pick_place", 0, replace(cfg, path_noise_cm=1.5))
+
+
+def test_noisy_episode_keeps_the_plans_actions_and_leaves_its_path(clean_and_noisy):
+    clean, noisy = clean_and_noisy
+    assert clean.meta["success"] and noisy.meta["success"]
+    assert noisy.meta["path_noise_cm"] == 1.5 and "path_noise_cm" not in clean.meta
+    pick = int((clean.subtask == 0).sum())
+    assert int((noisy.subtask == 0).sum()) == pick
+    # the pick's plan is the same (its own random stream): the actions agree to the bit ...
+    assert np.array_equal(clean.action[:pick - 1], noisy.action[:pick - 1])
+    # ... while the arm went elsewhere on the way, and back onto the plan before the fingers closed
+    dev = np.linalg.norm(clean.proprio[:pick, :3] - noisy.proprio[:pick, :3], axis=1)
+    assert dev.max() > 0.01
+    close = int(np.argmax(clean.action[:, 9] > 0.5))  # the step whose action closes the gripper
+    assert dev[close] < 0.002
