@@ -28,10 +28,7 @@ SMOOTH_S = 0.2  # and box-filtered over this window: no step-to-step jitter for 
 
 def step_labels(motion: Motion, dt: float) -> list[str]:
     """The running segment's label at every physics step `datagen.trajectory.execute` takes."""
-    out: list[str] = []
-    for seg in motion.segments:
-        out += [seg.label] * int(round(seg.duration / dt))
-    return out
+    return [seg.label for seg in motion.segments for _ in range(seg.steps(dt))]
 
 
 def envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
@@ -74,16 +71,12 @@ def joint_offsets(motion: Motion, kin, dt: float, rng: np.random.Generator, sigm
     is held)."""
     labels = step_labels(motion, dt)
     d = smooth_offsets(len(labels), dt, sigma, tau_s, rng) * envelope(labels, dt, fade_s)[:, None]
+    planned = np.concatenate([seg.targets(dt) for seg in motion.segments]) if motion.segments else np.zeros((0, 6))
     out = np.zeros((len(labels), 6))
-    k = 0
-    for seg in motion.segments:
-        n = int(round(seg.duration / dt))
-        for i, q in enumerate(seg.at(seg.times[0] + dt * np.arange(1, n + 1))):
-            if np.any(d[k + i]):
-                J = kin.jacobian(q)
-                twist = np.concatenate([d[k + i], np.zeros(3)])
-                out[k + i] = J.T @ np.linalg.solve(J @ J.T + damping**2 * np.eye(6), twist)
-        k += n
+    for k in np.flatnonzero(np.any(d != 0.0, axis=1)):
+        J = kin.jacobian(planned[k])
+        twist = np.concatenate([d[k], np.zeros(3)])
+        out[k] = J.T @ np.linalg.solve(J @ J.T + damping**2 * np.eye(6), twist)
     return out
 
 

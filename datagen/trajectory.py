@@ -40,6 +40,14 @@ class Segment:
     def duration(self) -> float:
         return float(self.times[-1] - self.times[0])
 
+    def steps(self, dt: float) -> int:
+        """How many physics steps of `dt` running the segment takes."""
+        return int(round(self.duration / dt))
+
+    def targets(self, dt: float) -> np.ndarray:
+        """(steps, 6) joint targets, one per physics step, as `execute` commands them."""
+        return self.at(self.times[0] + dt * np.arange(1, self.steps(dt) + 1))
+
     def at(self, t) -> np.ndarray:
         """Joint targets at time(s) t, clamped to the segment: (6,) for a scalar, (len(t), 6) for an array."""
         t = np.asarray(t, dtype=float)
@@ -106,11 +114,13 @@ def execute(world, motion: Motion, observer=None, offsets: np.ndarray | None = N
     k = 0
     for seg in motion.segments:
         world.set_gripper(seg.gripper)
-        n = int(round(seg.duration / dt))
-        targets = seg.at(seg.times[0] + dt * np.arange(1, n + 1))
-        for q in targets:
+        for q in seg.targets(dt):
             world.set_arm_target(q if offsets is None else q + offsets[k])
             world.step()
-            if observer is not None:
-                observer(world, seg.label) if offsets is None else observer(world, seg.label, q)
+            if observer is None:
+                pass
+            elif offsets is None:
+                observer(world, seg.label)
+            else:
+                observer(world, seg.label, q)
             k += 1
