@@ -156,7 +156,8 @@ def _pretrain(args) -> int:
     print(json.dumps(summary, indent=2) if args.json else
           f"run {summary['run_dir']}: {summary['views']} views of {summary['scenes']} scenes, loss "
           f"{summary['final_loss']:.4f}, held-out grasp error {val.get('val_grasp_cm', float('nan')):.1f} cm "
-          f"({val.get('val_pregrasp_cm', float('nan')):.1f} cm before the grasp); "
+          f"({val.get('val_pregrasp_cm', float('nan')):.1f} cm before the grasp), release point "
+          f"{val.get('val_release_cm', float('nan')):.1f} cm off while carrying; "
           f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
     return 0
 

@@ -88,6 +88,11 @@ class PolicyConfig:
         "chunk is drawn towards where the images say the object is (needs aux_target_weight > 0); training "
         "feeds the true points plus aux_condition_noise, inference the head's prediction (exported in "
         "obs_encoder.onnx)")))
+    aux_condition_source: str = field(default="truth", metadata=spec(choices=("truth", "head"), doc=(
+        "what training feeds the denoiser as the aux points: truth (the recorded points plus "
+        "aux_condition_noise: teacher forcing, for a head still learning) or head (the head's own prediction, "
+        "detached: what inference feeds, so the denoiser learns how far to trust each point; for a frozen, "
+        "pretrained head whose release point is poor where pretraining never looked)")))
     aux_condition_noise: float = field(default=0.1, metadata=spec(0.0, 10.0, doc=(
         "std of the Gaussian noise on the true points fed in training, in the head's units (tcp frame: "
         "0.25 m per unit), so the denoiser learns to follow a point about as wrong as the head's")))
@@ -149,6 +154,9 @@ class PolicyConfig:
         if self.aux_condition and self.aux_target_weight <= 0:
             raise ConfigError("aux_condition needs aux_target_weight > 0 (the aux head that predicts the points "
                               "it feeds to the denoiser is trained only then)")
+        if self.aux_condition_source == "head" and not self.aux_condition:
+            raise ConfigError("aux_condition_source 'head' needs aux_condition = true (it says what the denoiser's "
+                              "aux inputs are in training)")
         if self.image_cond_dropout > 0 and not self.aux_condition:
             raise ConfigError(f"image_cond_dropout {self.image_cond_dropout} needs aux_condition = true (without "
                               "the aux points a denoiser with hidden images has no view of the scene)")

@@ -186,6 +186,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
         steps = [grasp_and_release_steps(a["action"]) for a in low]
         self.grasp_step = [ts[0] for ts in steps]
+        self.release_step = [ts[1] for ts in steps]
         if cfg.aux_target_frame == "tcp":
             self.aux_points = [a["action"][list(ts), :3] for a, ts in zip(low, steps)]
         else:
@@ -295,6 +296,12 @@ class PolicyDataset(torch.utils.data.Dataset):
         which the grasp point can be seen where it is (afterwards the object rides in the fingers)."""
         k, s = self.index[index]
         return s + self.cfg.obs_horizon - 1 < self.grasp_step[k]
+
+    def carrying(self, index: int) -> bool:
+        """Whether the sample's newest observation falls between its episode's grasp and release: the frames
+        on which the policy carries the object and aims for the release point."""
+        k, s = self.index[index]
+        return self.grasp_step[k] <= s + self.cfg.obs_horizon - 1 < self.release_step[k]
 
     def aux_target(self, index: int) -> torch.Tensor:
         """The sample's auxiliary target (6,) in the config's `aux_target_frame`, without reading images."""

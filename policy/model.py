@@ -299,14 +299,18 @@ class DiffusionPolicy(nn.Module):
         noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
         aux_noise (B, 6) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
         aux_condition_noise times this (teacher forcing: it learns to follow the points from the first step,
-        while the head's own predictions are still poor); None = the true points.
+        while the head's own predictions are still poor); None = the true points. With aux_condition_source
+        "head" it is conditioned on the head's detached prediction instead, as at inference.
         image_keep (B,) of 0/1, with image_cond_dropout: 0 hides that sample's image features from the
         denoiser; None = what inference does (hidden only when image_cond_dropout is 1).
         """
         features = self.obs_encoder(batch.get("images"), batch["proprio"], batch["text"], batch.get("image_features"))
         cond = features
         if self.cfg.aux_condition:
-            fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
+            if self.cfg.aux_condition_source == "head":
+                fed = self.aux_points(features).detach()
+            else:
+                fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
             cond = torch.cat([self.shown_features(features, image_keep), fed], dim=1)
         loss = F.mse_loss(*self.denoise_target(cond, batch["action"], noise, timesteps))
         if self.aux_head is not None:

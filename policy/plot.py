@@ -46,10 +46,13 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
         aiming = [r for r in grasp if "val_pregrasp_cm" in r]  # likewise for this one
         if aiming:
             lines.append(line("unseen, before the grasp", aiming, "val_pregrasp_cm"))
+        placing = [r for r in grasp if "val_release_cm" in r]
+        if placing:
+            lines.append(line("unseen, release point while carrying", placing, "val_release_cm"))
         guessed = [r for r in grasp if "guess_grasp_cm" in r]  # rows written before it was logged have none
         if guessed:
             lines.append(line("constant guess", guessed, "guess_grasp_cm"))
-        panels.append(("grasp point error [cm]", lines, False))
+        panels.append(("aux head: grasp (and release) point error [cm]", lines, False))
     _draw(panels, out_png)
     return Path(out_png)
 

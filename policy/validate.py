@@ -14,6 +14,8 @@ centre crops:
   grasp_cm  median error of the auxiliary head's grasp point (only with aux_target_weight > 0)
   pregrasp_cm  the same over the samples observed before the gripper closes, where the policy aims: after
             the grasp the object rides in the fingers and the point it was taken from is not in the images
+  release_cm  median error of the aux head's release point over the samples observed while the object is
+            carried, before the gripper opens: how well the policy sees where to let go
 
 each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples), and
 guess_grasp_cm: the error of always answering the training samples' mean grasp point, the scale against
@@ -52,6 +54,7 @@ class Validator:
             g = torch.Generator().manual_seed(self.seed)
             losses, errors, chunk = [], [], []
             before = np.array([ds.before_grasp(int(i)) for i in idx])
+            carrying = np.array([ds.carrying(int(i)) for i in idx])
             for lo in range(0, len(idx), self.batch):
                 batch = to_device(default_collate([ds[int(i)] for i in idx[lo:lo + self.batch]]), device)
                 batch = finish_images(batch) if ds.uint8_images else batch
@@ -64,16 +67,20 @@ class Validator:
                 if self.chunks:
                     chunk.append(self._chunk_cm(model, cond, batch["action"], g))
                 if model.aux_head is not None:
-                    pred = model.aux_points(features)[:, :3].float().cpu().numpy()
-                    errors.append(self._metres(pred) - self._metres(batch["aux"][:, :3].cpu().numpy()))
+                    pred = model.aux_points(features)[:, :6].float().cpu().numpy()
+                    want = batch["aux"][:, :6].cpu().numpy()
+                    errors.append(np.stack([self._metres(pred[:, j:j + 3]) - self._metres(want[:, j:j + 3])
+                                            for j in (0, 3)], axis=1))
             out[f"{name}_loss"] = float(torch.cat(losses).mean())
             if chunk:
                 out[f"{name}_chunk_cm"] = float(np.median(np.concatenate(chunk)))
             if errors:
-                miss = np.linalg.norm(np.concatenate(errors), axis=1) * 100
-                out[f"{name}_grasp_cm"] = float(np.median(miss))
+                miss = np.linalg.norm(np.concatenate(errors), axis=2) * 100  # (samples, grasp|release)
+                out[f"{name}_grasp_cm"] = float(np.median(miss[:, 0]))
                 if before.any():
-                    out[f"{name}_pregrasp_cm"] = float(np.median(miss[before]))
+                    out[f"{name}_pregrasp_cm"] = float(np.median(miss[before, 0]))
+                if carrying.any():
+                    out[f"{name}_release_cm"] = float(np.median(miss[carrying, 1]))
                 out["guess_grasp_cm"] = self.guess_cm
         model.train(was_training)
         return out

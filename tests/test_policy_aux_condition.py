@@ -80,6 +80,33 @@ def test_training_feeds_the_true_points_plus_scaled_noise():
         assert abs(denoiser_term[0] - denoiser_term[1]) > 1e-6  # the denoiser sees the fed points
 
 
+def test_head_source_trains_the_denoiser_on_what_inference_feeds():
+    with pytest.raises(ConfigError, match="aux_condition_source 'head' needs aux_condition"):
+        load_policy_config(TINY, {**AUX, "aux_condition_source": "head"})
+    with pytest.raises(ConfigError, match="aux_condition_source"):
+        load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_source": "oracle"})
+    cfg = load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_source": "head"})
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    b = _batch(cfg)
+    noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
+    mse = torch.nn.functional.mse_loss
+    with torch.no_grad():
+        features = model.obs_encoder(b["images"], b["proprio"], b["text"])
+        head = model.aux_points(features)
+        want = mse(*model.denoise_target(model.cond_from(features), b["action"], noise, t)) + mse(head, b["aux"])
+        torch.testing.assert_close(model.loss(b, noise, t, torch.randn(3, AUX_DIM)), want)
+    # the head learns from its own loss only: the denoiser's loss sends it nothing through the fed points
+    grads = []
+    for full in (True, False):
+        model.zero_grad()
+        features = model.obs_encoder(b["images"], b["proprio"], b["text"])
+        (model.loss(b, noise, t) if full else mse(model.aux_points(features), b["aux"])).backward()
+        grads.append([p.grad.clone() for p in model.aux_head.parameters()])
+    for with_denoiser, alone in zip(*grads):
+        torch.testing.assert_close(with_denoiser, alone)
+
+
 def test_warm_start_reproduces_the_source_then_records_it(data_dir, source_run, tmp_path):
     from policy import warm_start
     from policy.train import load_run_model

@@ -148,17 +148,24 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     first = check(model, torch.device("cpu"))
     assert first == check(model, torch.device("cpu"))  # fixed samples, noise and timesteps
     assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm", "guess_grasp_cm",
-                          "val_pregrasp_cm", "fit_pregrasp_cm", "val_chunk_cm", "fit_chunk_cm"}
+                          "val_pregrasp_cm", "fit_pregrasp_cm", "val_release_cm", "fit_release_cm",
+                          "val_chunk_cm", "fit_chunk_cm"}
     assert "val_chunk_cm" not in Validator(val, fit, samples=16, batch=8, chunks=False)(model, torch.device("cpu"))
     # before the grasp = the newest observed step precedes the gripper's first close command
     for ds, idx in check.sets.values():
-        flags = []
+        flags, carried = [], []
         for i in idx:
             k, s = ds.index[int(i)]
             shut = ds.store.window(ds.episodes[k], fields=("action",))["action"][:, -1] > 0.5
             flags.append(ds.before_grasp(int(i)))
             assert flags[-1] == (s + cfg.obs_horizon - 1 < (np.argmax(shut) if shut.any() else len(shut) - 1))
+            # carrying = from the first close up to the next open command
+            t_open = np.argmax(shut) + np.argmax(~shut[np.argmax(shut):]) if (~shut[np.argmax(shut):]).any() \
+                else len(shut) - 1
+            carried.append(ds.carrying(int(i)))
+            assert carried[-1] == (np.argmax(shut) <= s + cfg.obs_horizon - 1 < t_open)
         assert any(flags) and not all(flags)
+        assert any(carried) and not all(carried) and not any(f and c for f, c in zip(flags, carried))
     for ds in (val, fit):  # the image-free target is the one the samples carry
         assert all(torch.equal(ds.aux_target(i), ds[i]["aux"]) for i in (0, len(ds) // 2, len(ds) - 1))
     assert first["guess_grasp_cm"] > 0
