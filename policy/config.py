@@ -105,6 +105,10 @@ class PolicyConfig:
         "keep the image encoders and the aux head as the warm start left them (sudd train --init-from a `sudd "
         "pretrain` run: what thousands of rendered scenes taught them), so a few hundred episodes cannot turn "
         "them into a lookup of those scenes; the rest trains, and a CPU step skips the encoders' backward")))
+    train_aux_head: bool = field(default=False, metadata=spec(doc=(
+        "with freeze_pretrained: the aux head trains on the episodes anyway (the image encoders stay frozen), "
+        "so it learns the points on frames pretraining never showed, such as the release point while the "
+        "object is carried")))
     feature_cache: int = field(default=0, metadata=spec(0, 64, doc=(
         "with freeze_pretrained: run the frozen image encoders once over every training frame, for this many "
         "copies (the first uncropped and unjittered, the others with the training crop and jitter), and train "
@@ -160,6 +164,9 @@ class PolicyConfig:
         if self.image_cond_dropout > 0 and not self.aux_condition:
             raise ConfigError(f"image_cond_dropout {self.image_cond_dropout} needs aux_condition = true (without "
                               "the aux points a denoiser with hidden images has no view of the scene)")
+        if self.train_aux_head and not (self.freeze_pretrained and self.aux_target_weight > 0):
+            raise ConfigError("train_aux_head needs freeze_pretrained = true and aux_target_weight > 0 (without "
+                              "freezing, the aux head trains anyway)")
         if self.feature_cache and not self.freeze_pretrained:
             raise ConfigError(f"feature_cache {self.feature_cache} needs freeze_pretrained = true (only frozen "
                               "encoders give the same features every step)")

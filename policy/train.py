@@ -201,7 +201,8 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             raise ValueError("freeze_pretrained keeps the image encoders and aux head as initialized: start the "
                              "run with init_from (--init-from RUN, a `sudd pretrain` run), or leave it false")
         for name in warm_start.PRETRAINED:
-            model.get_submodule(name).requires_grad_(False)
+            if not (name == "aux_head" and cfg.train_aux_head):
+                model.get_submodule(name).requires_grad_(False)
     model = model.to(dev)
     table = None
     if cfg.feature_cache:  # the frozen encoders' output, once (policy.feature_cache)

@@ -77,3 +77,19 @@ def test_training_on_cached_features_keeps_the_encoders_and_learns_the_rest(data
             torch.testing.assert_close(after.state_dict()[name], p)
     assert not torch.equal(after.state_dict()["obs_encoder.proprio.0.weight"],
                            before.state_dict()["obs_encoder.proprio.0.weight"])
+    # train_aux_head: the encoders stay as the source left them, the aux head learns on the episodes
+    head_run = tmp_path / "head"
+    train(data_dir, dict(TINY), head_run, steps=12, embedder=hash_embedder, progress=False, threads=1,
+          overrides={**FROZEN, "feature_cache": 2, "train_aux_head": True}, init_from=source)
+    trained, _, _ = load_run_model(head_run)
+    for name, p in before.state_dict().items():
+        if name.startswith("obs_encoder.images."):
+            torch.testing.assert_close(trained.state_dict()[name], p)
+    assert any(not torch.equal(trained.state_dict()[n], p) for n, p in before.state_dict().items()
+               if n.startswith("aux_head."))
+
+
+def test_train_aux_head_needs_a_frozen_run_with_an_aux_head():
+    with pytest.raises(ConfigError, match="train_aux_head needs freeze_pretrained"):
+        load_policy_config(TINY, {**FROZEN, "freeze_pretrained": False, "train_aux_head": True})
+    assert load_policy_config(TINY, {**FROZEN, "train_aux_head": True}).train_aux_head
