@@ -16,7 +16,8 @@ fi
 $PY -c "import mujoco, ompl, zarr, torch; print('torch', torch.__version__, torch.cuda.is_available())" || exit 4
 W=$(( $(nproc) - 1 ))
 OMP_NUM_THREADS=1 timeout -s INT ${DATAGEN_LIMIT_S:-330} $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" \
-    datagen --task pick_place --episodes "$N" --seed-offset 1000 --holdout-color purple --out /tmp/data --workers $W \
+    datagen --task pick_place --episodes "$N" --seed-offset 1000 --holdout-color purple --path-noise-cm 3 --out /tmp/data \
+    --workers $W \
     2>&1 | tr '\r' '\n' | tail -3
 sleep 2
 echo "datagen done at $(( $(date +%s) - T0 )) s"
