@@ -117,10 +117,6 @@ def execute(world, motion: Motion, observer=None, offsets: np.ndarray | None = N
         for q in seg.targets(dt):
             world.set_arm_target(q if offsets is None else q + offsets[k])
             world.step()
-            if observer is None:
-                pass
-            elif offsets is None:
-                observer(world, seg.label)
-            else:
-                observer(world, seg.label, q)
+            if observer is not None:
+                observer(world, seg.label, *(() if offsets is None else (q,)))
             k += 1
