@@ -131,6 +131,8 @@ def _check_manifest(m: dict) -> None:
         _need(all(0 < a <= 1 for a in sg) and list(sgn) == list(sg[1:]) + [0.0]
               and all(a > b for a, b in zip(ts, ts[1:])),
               "euler schedule: noise levels must lie in (0, 1], descend to 0 and follow each other; timesteps descend")
+    ns = m.get("sampling", {}).get("noise_scale", 1.0)
+    _need(isinstance(ns, (int, float)) and 0.0 <= ns <= 1.0, f"sampling noise_scale {ns!r} is outside [0, 1]")
     want = expected_graphs(m)
     for name, spec in want.items():
         got = m["graphs"].get(name, {})
@@ -227,6 +229,9 @@ class Bundle:
         s = m["euler"] if "euler" in m else m["ddim"]  # euler: flow matching (the denoiser predicts a velocity)
         self._schedule, self._step = schedule_steps(s), step_function(s)
         self._clip = bool(m.get("diffusion", {}).get("clip_sample", True))
+        # The sampling temperature: the initial noise is drawn from N(0, noise_scale^2 I). Below 1 the sampler
+        # keeps to the denser middle of the learned action distribution (bundles before it: 1).
+        self.noise_scale = float(m.get("sampling", {}).get("noise_scale", 1.0))
         self._cache: dict[str, np.ndarray] = {}
         self._refs = np.zeros((0, TEXT_DIM), np.float32)
 
@@ -335,8 +340,8 @@ class Bundle:
         """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
 
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
-        (384,); noise: the initial (Tp, Da) N(0, I) sample (else drawn from `rng`). `trace`, if a list,
-        receives cond then (x_t, t, predicted noise) per step (for parity checks).
+        (384,); noise: the initial (Tp, Da) sample, used as given (else drawn from `rng`, N(0, noise_scale^2 I)).
+        `trace`, if a list, receives cond then (x_t, t, predicted noise) per step (for parity checks).
         """
         To, (H, W) = self.obs_horizon, self.image_size
         feeds = {}
@@ -356,7 +361,8 @@ class Bundle:
         feeds["text_embedding"] = e[None]
         cond = self.sessions["obs_encoder"].run(None, feeds)[0]
         if noise is None:
-            noise = (rng or np.random.default_rng()).standard_normal((self.pred_horizon, self.action_dim))
+            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal((self.pred_horizon,
+                                                                                          self.action_dim))
         x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
         if trace is not None:
             trace.append(cond)

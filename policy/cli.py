@@ -103,6 +103,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--inference-steps", type=int, default=None, metavar="N",
                     help="sampler steps per chunk, DDIM or (objective = flow) Euler (default: the run's "
                          "inference_steps); more steps give smoother chunks for more latency, see `sudd bench policy`")
+    ex.add_argument("--noise-scale", type=float, default=None, metavar="S",
+                    help="sampling temperature in [0, 1] (default: the run's noise_scale, 1): the sampler starts "
+                         "from N(0, S^2 I); lower keeps to the denser middle of the learned chunks")
     ex.add_argument("--restore-text-encoder", type=Path, metavar="BUNDLE",
                     help="instead of exporting: write BUNDLE's text encoder and tokenizer back, then verify")
     ex.add_argument("--json", action="store_true", help="print the manifest (or the restore summary) as JSON")
@@ -187,7 +190,8 @@ def _export(args) -> int:
     from policy.export import export
 
     manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
-                      fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps)
+                      fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
+                      noise_scale=args.noise_scale)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:

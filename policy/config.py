@@ -72,6 +72,9 @@ class PolicyConfig:
         "ddpm: epsilon prediction, DDIM sampling; flow: flow matching (velocity of the straight noise-to-action "
         "path), Euler sampling, good in few steps")))
     inference_steps: int = field(default=8, metadata=spec(1, 1000, doc="DDIM or Euler steps"))
+    noise_scale: float = field(default=1.0, metadata=spec(0.0, 1.0, doc=(
+        "sampling temperature: the sampler starts from N(0, noise_scale^2 I); below 1 it keeps to the denser "
+        "middle of the learned chunks (0: one deterministic chunk per observation); training is unaffected")))
     clip_sample: bool = True
     # data
     include_failures: bool = False

@@ -150,18 +150,21 @@ PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
 
 def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Path | None = None, ema: bool = True,
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
-           inference_steps: int | None = None) -> dict:
+           inference_steps: int | None = None, noise_scale: float | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights) to a bundle directory; returns the manifest.
 
     inference_steps: DDIM steps the bundle samples with, instead of the run's config (the network is trained
-    for every timestep, so this is an inference choice: more steps, smoother chunks, more latency)."""
+    for every timestep, so this is an inference choice: more steps, smoother chunks, more latency).
+    noise_scale: the sampling temperature, instead of the run's config (also an inference choice)."""
     from policy.config import load_policy_config
     from policy.train import load_run_model
 
     run_dir = Path(run_dir)
     model, cfg, training = load_run_model(run_dir, checkpoint, ema)
-    if inference_steps is not None:
-        model.cfg = load_policy_config(cfg, {"inference_steps": inference_steps})
+    overrides = {k: v for k, v in (("inference_steps", inference_steps), ("noise_scale", noise_scale))
+                 if v is not None}
+    if overrides:
+        model.cfg = load_policy_config(cfg, overrides)
     warm = read_record(run_dir)
     if warm is not None:
         training["warm_start"] = warm
@@ -231,7 +234,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                           "beta_schedule": cfg.beta_schedule, "prediction_type": PREDICTS[cfg.objective],
                           "sampler": SAMPLER_KEY[cfg.objective], "eta": 0.0, "clip_sample": cfg.clip_sample,
                           "spacing": "trailing"},
-            SAMPLER_KEY[cfg.objective]: schedule_for(model),
+            SAMPLER_KEY[cfg.objective]: schedule_for(model), "sampling": {"noise_scale": cfg.noise_scale},
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),

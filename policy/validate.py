@@ -90,7 +90,7 @@ class Validator:
         from policy.sampling import sample
 
         cfg = model.cfg
-        noise = torch.randn(action.shape, generator=g).to(action.device)
+        noise = cfg.noise_scale * torch.randn(action.shape, generator=g).to(action.device)
         ex = slice(cfg.obs_horizon - 1, cfg.obs_horizon - 1 + cfg.action_horizon)
         got = self.normalizer.unnormalize_action(sample(model, cond, noise)[:, ex].float().cpu().numpy())
         want = self.normalizer.unnormalize_action(action[:, ex].float().cpu().numpy())

@@ -64,6 +64,7 @@ def test_layout_and_manifest(bundle_dir):
     assert m["tasks"] == ["pick_place", "stack"] and m["instructions"] == ["do pick_place", "do stack"]
     assert len(m["data"]["content_hash"]) == 64 and m["training"]["ema"] is True
     assert len(m["ddim"]["timesteps"]) == m["config"]["inference_steps"] <= 8
+    assert m["sampling"] == {"noise_scale": 1.0}
     assert m["graphs"] == {k: dict(v, file=m["graphs"][k]["file"]) for k, v in expected_graphs(m).items()}
     assert m["parity"]["step_max_abs_err"] <= STEP_TOL and m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL
     assert m["text_encoder"]["int8_min_cosine_vs_fp32"] >= 0.99
@@ -113,6 +114,12 @@ def test_act_outputs(bundle):
     np.testing.assert_array_equal(a, bundle.act(images, proprio, e, rng=np.random.default_rng(1)))
     assert not np.array_equal(a, bundle.act(images, proprio, e, rng=np.random.default_rng(2)))
     assert a[bundle.execute].shape == (8, 10)
+    bundle.noise_scale = 0.0  # the temperature scales only the drawn noise: 0 gives the zero-noise chunk
+    try:
+        np.testing.assert_array_equal(bundle.act(images, proprio, e, rng=np.random.default_rng(2)),
+                                      bundle.act(images, proprio, e, noise=np.zeros((16, 10), np.float32)))
+    finally:
+        bundle.noise_scale = 1.0
     with pytest.raises(ValueError, match="image 'scene'"):
         bundle.act(dict(images, scene=images["scene"][:, :16]), proprio, e)
     with pytest.raises(ValueError, match="proprio"):
@@ -208,6 +215,7 @@ def _bad_stats(p: Path):
     (lambda p: (p / "stats.npz").write_bytes(_flip((p / "stats.npz").read_bytes())), "content differs"),
     (lambda p: (p / "stats.npz").write_bytes(b"garbage"), "7 bytes, manifest says"),
     (lambda p: _edit(p, lambda m: m.pop("ddim")), "exactly one sampler schedule"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("sampling", {"noise_scale": 1.5})), "noise_scale 1.5 is outside"),
 ])
 def test_load_refuses_broken_bundles(bundle_dir, tmp_path, breakage, reason):
     broken = _broken_copy(bundle_dir, tmp_path / "b")
@@ -281,15 +289,19 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
 
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["export", str(run), "--out", str(tmp_path / "b"), "--inference-steps", "3"])
+    args = parser.parse_args(["export", str(run), "--out", str(tmp_path / "b"), "--inference-steps", "3",
+                              "--noise-scale", "0.5"])
     monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
     assert args.func(args) == 0
     assert "parity step" in capsys.readouterr().out and (tmp_path / "b" / "manifest.json").is_file()
     m = json.loads((tmp_path / "b" / "manifest.json").read_text())  # the bundle samples with 3 steps, checked
     assert len(m["ddim"]["timesteps"]) == 3 and m["config"]["inference_steps"] == 3
     assert m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL and len(Bundle.load(tmp_path / "b")._schedule) == 3
+    assert m["sampling"] == {"noise_scale": 0.5} and Bundle.load(tmp_path / "b", warmup=False).noise_scale == 0.5
     with pytest.raises(ConfigError, match="inference_steps"):
         args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--inference-steps", "0"]))
+    with pytest.raises(ConfigError, match="noise_scale"):
+        args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--noise-scale", "2"]))
     (tmp_path / "b" / "text_encoder.onnx").unlink()
     args = parser.parse_args(["export", "--restore-text-encoder", str(tmp_path / "b")])
     assert args.func(args) == 0 and "text encoder restored" in capsys.readouterr().out
