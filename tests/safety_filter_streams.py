@@ -80,13 +80,13 @@ def make_filter(name: str, **kw) -> SafetyFilter:
     return SafetyFilter(LIMITS[name], collision=kw.pop("collision", False), **kw)
 
 
-def inside(filt, q) -> bool:
-    """q is strictly inside the soft joint limits and the workspace."""
+def inside(filt, q, margin: float = 0.0) -> bool:
+    """q is strictly inside the soft joint limits, and more than `margin` (m) inside the workspace."""
     j = filt.limits.joints
     if np.any(q <= np.array(j.soft_lower)) or np.any(q >= np.array(j.soft_upper)):
         return False
     px, py, pz, R = filt.fk.pose(list(q))
-    return filt.workspace.min_slack(filt.workspace.points((px, py, pz), R)) > 0.0
+    return filt.workspace.min_slack(filt.workspace.points((px, py, pz), R)) > margin
 
 
 SEGMENTS = ("random", "jump", "huge", "nan", "shape", "tcp", "below_table", "keepout", "oscillate", "stale",

@@ -68,7 +68,8 @@ def test_tcp_speed_cap_holds_on_adversarial_streams():
 # ---- a safe stream passes bit for bit ---------------------------------------------------------------------
 @st.composite
 def safe_streams(draw):
-    """A smooth stream well inside every limit: starts at rest, |v|,|a|,|j| <= 40 % of the limits."""
+    """A smooth stream well inside every limit: starts at rest, |v|,|a|,|j| <= 40 % of the limits, and (the
+    test assumes) SAFE_MARGIN inside the workspace."""
     name = draw(st.sampled_from(("ur5e", "ur5")))
     seed = draw(st.integers(0, 2**32 - 1))
     n = draw(st.integers(50, 600))
@@ -96,13 +97,19 @@ def _safe_stream(filt, seed, n, terms):
     return q0, Q
 
 
+SAFE_MARGIN = 0.03
+
+
 @SIDE
 @given(safe_streams())
 def test_safe_stream_passes_unchanged(case):
     name, seed, n, terms = case
     filt = make_filter(name)
     q0, Q = _safe_stream(filt, seed, n, terms)
-    assume(all(inside(filt, q) for q in Q[::25]) and inside(filt, q0))
+    # Every pose 3 cm inside the workspace: the filter brakes a stream whose stop would leave it (hypothesis
+    # found streams ending 1.2 cm from a wall at speed, rightly slowed); 3 cm clears that on 453 of 453
+    # near-wall streams sampled offline.
+    assume(all(inside(filt, q, margin=SAFE_MARGIN) for q in np.vstack([q0, Q])))
     res = run_stream(filt, q0, [Command(q=q, command_time=k * filt.dt) for k, q in enumerate(Q)])
     assert np.array_equal(res.q[1:], Q), np.abs(res.q[1:] - Q).max()
     assert set(res.modes) == {TRACK}
