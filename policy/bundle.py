@@ -361,8 +361,8 @@ class Bundle:
         feeds["text_embedding"] = e[None]
         cond = self.sessions["obs_encoder"].run(None, feeds)[0]
         if noise is None:
-            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal((self.pred_horizon,
-                                                                                          self.action_dim))
+            shape = (self.pred_horizon, self.action_dim)
+            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal(shape)
         x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
         if trace is not None:
             trace.append(cond)
