@@ -27,6 +27,7 @@ examples:
   sudd eval --policy policy/bundles/demo --task pick_place --episodes 50 --dr heavy --seed-offset 100000
   sudd eval --policy out/bundle --task all --episodes 20 --suite seen --suite paraphrase --workers 2
   sudd eval --policy out/bundle --task pick_place --episodes 30 --suite heldout --holdout-color purple
+  sudd eval --policy out/bundle --task pick_place --episodes 60 --latency-ms 6 --no-collector  # repeatable
 """
 
 
@@ -54,6 +55,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episode budget = task.max_seconds x this (default 1; the collector keeps datagen's 2)")
     ev.add_argument("--replan-every", type=int, default=1, metavar="TICKS",
                     help="policy ticks between inferences (1: every tick, as the runtime's policy node)")
+    ev.add_argument("--latency-ms", type=float, metavar="MS",
+                    help="simulated inference lag per chunk, fixed (default: each inference's measured wall time, "
+                         "which varies from run to run; fix it, e.g. 6, to compare bundles on exactly the same "
+                         "episodes)")
     ev.add_argument("--controller", type=Path, metavar="FILE.toml",
                     help="chunk controller settings (as sudd run --controller): a TOML file of "
                          "runtime/controller/config.py's fields; recorded in summary.json")
@@ -69,6 +74,9 @@ def _eval(args) -> int:
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from sim.tasks import get_task
 
+    if args.latency_ms is not None and not 0.0 <= args.latency_ms < 1000.0:
+        raise ValueError(f"--latency-ms {args.latency_ms}: expected 0 <= MS < 1000 (the simulated inference lag of "
+                         "one chunk); leave it out to use the measured time")
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     bundle.check_replan_every(args.replan_every)
@@ -98,7 +106,7 @@ def _eval(args) -> int:
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
-                "controller": asdict(controller)}
+                "latency_ms": args.latency_ms, "controller": asdict(controller)}
     from tqdm import tqdm
 
     t0 = time.perf_counter()
@@ -187,6 +195,7 @@ def _job(job: dict) -> dict:
         out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
                                  time_limit_factor=s["time_limit_factor"],
+                                 latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"]).record()
     else:
         out = _collector(job["task"], job["seed"], s["dr"], holdout)

@@ -73,6 +73,31 @@ def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
     assert out.closest_cm == pytest.approx(100 * np.linalg.norm(tcp - obj), abs=1.0)
 
 
+class SlowReplay(Replay):
+    """Replay whose inference takes a different wall time on every call (0-12 ms, as a loaded CPU does)."""
+
+    def act(self, images, proprio, emb, rng=None) -> np.ndarray:
+        import time
+
+        time.sleep(float(np.random.default_rng().uniform(0.0, 0.012)))
+        return super().act(images, proprio, emb, rng)
+
+
+def _tcp_trace(collected, **kw) -> np.ndarray:
+    trace = []
+    run_policy_episode(SlowReplay(collected.action), "pick_place", SEED, dr="heavy", time_limit_factor=0.1,
+                       observer=lambda world, inst: trace.append(world.tcp_pose()[:3, 3].copy()), **kw)
+    return np.asarray(trace)
+
+
+def test_a_fixed_latency_makes_an_episode_repeatable_and_the_latency_moves_it(collected):
+    a, b = _tcp_trace(collected, latency_s=0.006), _tcp_trace(collected, latency_s=0.006)
+    assert len(a) > 20 and np.array_equal(a, b)  # bit for bit, whatever the wall time of each inference
+    # 25 controller cycles late: the chunk's time stamps absorb most of it (latency compensation), not all
+    late = _tcp_trace(collected, latency_s=0.05)
+    assert len(late) == len(a) and not np.array_equal(late, a)
+
+
 def test_failure_classes():
     from runtime.eval_progress import GraspProgress
 
@@ -179,6 +204,28 @@ def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, t
     assert [c.gripper_min_hold for c in seen] == [0.6]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["settings"]["controller"]["gripper_min_hold"] == 0.6
+
+
+def test_eval_cli_passes_a_fixed_latency_and_refuses_a_negative_one(untrained_bundle, tmp_path, monkeypatch, capsys):
+    import runtime.evaluate
+    from runtime.cli import main
+
+    seen = []
+    real = runtime.evaluate.run_policy_episode
+
+    def spy(*args, **kw):
+        seen.append(kw["latency_s"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(runtime.evaluate, "run_policy_episode", spy)
+    base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
+            "--time-limit-factor", "0.03"]
+    assert main([*base, "--latency-ms", "6", "--out", str(tmp_path / "a")]) == 0
+    assert main([*base, "--out", str(tmp_path / "b")]) == 0
+    assert seen == [0.006, None]
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["settings"]["latency_ms"] == 6.0
+    assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2
+    assert "--latency-ms -1.0: expected 0 <= MS < 1000" in capsys.readouterr().err
 
 
 def test_eval_cli_refuses_heldout_without_a_holdout(untrained_bundle, tmp_path, capsys):
