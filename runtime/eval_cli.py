@@ -28,6 +28,7 @@ examples:
   sudd eval --policy out/bundle --task all --episodes 20 --suite seen --suite paraphrase --workers 2
   sudd eval --policy out/bundle --task pick_place --episodes 30 --suite heldout --holdout-color purple
   sudd eval --policy out/bundle --task pick_place --episodes 60 --latency-ms 6 --no-collector  # repeatable
+  sudd eval --policy out/bundle --task pick_place --episodes 20 --filmstrips  # see each failure, frame by frame
 """
 
 
@@ -59,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="simulated inference lag per chunk, fixed (default: each inference's measured wall time, "
                          "which varies from run to run; fix it, e.g. 6, to compare bundles on exactly the same "
                          "episodes)")
+    ev.add_argument("--filmstrips", action="store_true",
+                    help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene camera "
+                         "every 2 s of sim time, to see how it failed (the episodes run the same with or without)")
     ev.add_argument("--controller", type=Path, metavar="FILE.toml",
                     help="chunk controller settings (as sudd run --controller): a TOML file of "
                          "runtime/controller/config.py's fields; recorded in summary.json")
@@ -106,7 +110,9 @@ def _eval(args) -> int:
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
-                "latency_ms": args.latency_ms, "controller": asdict(controller)}
+                "latency_ms": args.latency_ms,
+                "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
+                "controller": asdict(controller)}
     from tqdm import tqdm
 
     t0 = time.perf_counter()
@@ -140,6 +146,8 @@ def _eval(args) -> int:
     else:
         print(table)
         print(f"\n{len(records)} episodes; table {args.out / 'results.md'}, chart {png}, per episode {results_path}")
+        if args.filmstrips:
+            print(f"failed policy episodes, frame by frame: {args.out / 'filmstrips'}")
     return 0
 
 
@@ -190,16 +198,32 @@ def _job(job: dict) -> dict:
                       split="eval_heldout" if job["suite"] == "heldout" else "train")
     t0 = time.perf_counter()
     if job["who"] == "policy":
-        from runtime.evaluate import run_policy_episode
+        out = _policy(job, s, holdout)
+    else:
+        out = _collector(job["task"], job["seed"], s["dr"], holdout)
+    return {**job, **out, "wall_s": round(time.perf_counter() - t0, 2)}
 
+
+def _policy(job: dict, s: dict, holdout) -> dict:
+    from runtime.eval_filmstrip import Filmstrip
+    from runtime.evaluate import run_policy_episode
+
+    strip = Filmstrip() if s["filmstrips"] else None
+    try:
         out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
-                                 controller=_WORKER["controller"]).record()
-    else:
-        out = _collector(job["task"], job["seed"], s["dr"], holdout)
-    return {**job, **out, "wall_s": round(time.perf_counter() - t0, 2)}
+                                 controller=_WORKER["controller"], observer=strip).record()
+        if strip is not None and not out["success"]:
+            title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
+                     f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")
+            path = Path(s["filmstrips"]) / f"{job['suite']}_{job['task']}_{job['seed']}.png"
+            out["filmstrip"] = str(strip.save(path, title))
+    finally:
+        if strip is not None:
+            strip.close()
+    return out
 
 
 def _collector(task: str, seed: int, dr: str, holdout) -> dict:

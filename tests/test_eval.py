@@ -98,6 +98,34 @@ def test_a_fixed_latency_makes_an_episode_repeatable_and_the_latency_moves_it(co
     assert len(late) == len(a) and not np.array_equal(late, a)
 
 
+def test_a_filmstrip_shows_the_episode_and_changes_nothing(collected, tmp_path):
+    from PIL import Image
+
+    from runtime.eval_filmstrip import Filmstrip
+
+    strip = Filmstrip(every_s=1.0, size=(64, 48))
+    trace = []
+
+    def both(world, inst):
+        strip(world, inst)
+        trace.append(world.tcp_pose()[:3, 3].copy())
+
+    run_policy_episode(Replay(collected.action), "pick_place", SEED, dr="heavy", time_limit_factor=0.1,
+                       latency_s=0.006, observer=both)
+    plain = []
+    run_policy_episode(Replay(collected.action), "pick_place", SEED, dr="heavy", time_limit_factor=0.1,
+                       latency_s=0.006, observer=lambda world, inst: plain.append(world.tcp_pose()[:3, 3].copy()))
+    assert np.array_equal(np.asarray(trace), np.asarray(plain))  # rendering read the sim, never moved it
+    png = strip.save(tmp_path / "s.png", "seed 100003")
+    strip.close()
+    times = [float(c.split(" s")[0]) for c, _ in strip.frames]
+    assert times[:3] == [0.0, 1.0, 2.0] and len(times) == 4 and 2.5 < times[3] <= 3.0  # every 1 s, then the end
+    first, last = strip.frames[0][1], strip.frames[-1][1]
+    assert first.shape == (48, 64, 3) and np.abs(first.astype(int) - last).mean() > 1  # the arm moved
+    with Image.open(png) as im:
+        assert im.size[0] == 4 * (64 + 4) + 4
+
+
 def test_failure_classes():
     from runtime.eval_progress import GraspProgress
 
@@ -206,7 +234,8 @@ def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, t
     assert summary["settings"]["controller"]["gripper_min_hold"] == 0.6
 
 
-def test_eval_cli_passes_a_fixed_latency_and_refuses_a_negative_one(untrained_bundle, tmp_path, monkeypatch, capsys):
+def test_eval_cli_passes_a_fixed_latency_and_filmstrips_and_refuses_a_negative_latency(untrained_bundle, tmp_path,
+                                                                                          monkeypatch, capsys):
     import runtime.evaluate
     from runtime.cli import main
 
@@ -220,9 +249,13 @@ def test_eval_cli_passes_a_fixed_latency_and_refuses_a_negative_one(untrained_bu
     monkeypatch.setattr(runtime.evaluate, "run_policy_episode", spy)
     base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
             "--time-limit-factor", "0.03"]
-    assert main([*base, "--latency-ms", "6", "--out", str(tmp_path / "a")]) == 0
+    assert main([*base, "--latency-ms", "6", "--filmstrips", "--out", str(tmp_path / "a")]) == 0
     assert main([*base, "--out", str(tmp_path / "b")]) == 0
     assert seen == [0.006, None]
+    (a,), (b,) = (map(json.loads, (tmp_path / d / "results.jsonl").read_text().splitlines()) for d in "ab")
+    assert not a["success"] and a["filmstrip"] == str(tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png")
+    assert (tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png").stat().st_size > 1000
+    assert "filmstrip" not in b and not (tmp_path / "b" / "filmstrips").exists()
     assert json.loads((tmp_path / "a" / "summary.json").read_text())["settings"]["latency_ms"] == 6.0
     assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2
     assert "--latency-ms -1.0: expected 0 <= MS < 1000" in capsys.readouterr().err
