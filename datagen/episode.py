@@ -19,7 +19,7 @@ from datagen.planner import make_planner
 from datagen.primitives import GRASP_SECONDS, PrimitiveFailed, Primitives
 from datagen.recorder import Recorder
 from datagen.sandbox import SandboxError, run_check
-from datagen.schema import IMAGE_SIZE, EpisodeData
+from datagen.schema import IMAGE_SIZE, PERTURBATION, EpisodeData
 from datagen.trajectory import Motion, Segment, execute
 from sim.build import build_episode
 from sim.tasks import Holdout
@@ -69,7 +69,7 @@ class DatagenConfig:
 def _dropped(motion: Motion, rng: np.random.Generator) -> Motion:
     """The place motion cut 10-40 % of the way (in transit), where the gripper lets go (a slip or a bump)."""
     cut = motion.truncated(motion.duration * rng.uniform(0.1, 0.4))
-    cut.append(Segment.hold(cut.final_q, 0.6, 0.0, "perturbation"))
+    cut.append(Segment.hold(cut.final_q, 0.6, 0.0, PERTURBATION))
     return cut
 
 
@@ -80,7 +80,7 @@ def _missed(motion: Motion, rng: np.random.Generator) -> Motion:
     i = motion.labels.index("approach")
     start = sum(s.duration for s in motion.segments[:i])
     cut = motion.truncated(start + motion.segments[i].duration * rng.uniform(0.5, 0.9))
-    cut.append(Segment.hold(cut.final_q, GRASP_SECONDS, 1.0, "perturbation"))
+    cut.append(Segment.hold(cut.final_q, GRASP_SECONDS, 1.0, PERTURBATION))
     return cut
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from datagen.schema import CAMERAS, CONTROL_HZ, SCHEMA_VERSION
+from datagen.schema import CAMERAS, CONTROL_HZ, PERTURBED, SCHEMA_VERSION
 from datagen.store import Dataset
 
 _BG, _FG, _DIM = (24, 24, 28), (235, 235, 235), (150, 150, 160)
@@ -121,7 +121,7 @@ def contact_sheet(root: str | Path, episode_index: int, out_png: str | Path, sam
     label_col = 70
     cap_lines = max(len(_wrap(probe, _subtask_text(labels, int(ep.subtask[s])), f_small, tw)) for s in steps)
     header_h, cap_top, cap_bottom = 64, 22, 8 + 16 * cap_lines
-    legend = len(labels) + int(np.any(ep.subtask < 0))
+    legend = len(labels) + len(np.unique(ep.subtask[ep.subtask < 0]))
     timeline_h = 36 + 18 * ((legend + 1) // 2)
     width = label_col + len(steps) * (tw + _GAP) + _GAP
     height = header_h + cap_top + len(CAMERAS) * (th + _GAP) + cap_bottom + timeline_h
@@ -165,12 +165,16 @@ def contact_sheet(root: str | Path, episode_index: int, out_png: str | Path, sam
 
 
 def _subtask_text(labels: list[str], k: int) -> str:
+    if k == PERTURBED:
+        return "(injected failure)"
     if k < 0:
         return "(recovering)"
     return f"{k + 1}. {labels[k]}" if k < len(labels) else f"subtask {k}"
 
 
 def _color(k: int) -> tuple:
+    if k == PERTURBED:
+        return (200, 60, 60)
     return (110, 110, 110) if k < 0 else _PALETTE[k % len(_PALETTE)]
 
 
@@ -185,8 +189,7 @@ def _timeline(d, ep, steps, labels, x0: int, y0: int, width: int, font) -> None:
         x = x0 + int(width * (s + 0.5) / T)
         d.line((x, y0 - 4, x, y0 + 15), fill=_FG, width=1)
     entries = [(k, _subtask_text(labels, k)) for k in range(len(labels))]
-    if np.any(ep.subtask < 0):
-        entries.append((-1, "(recovering)"))
+    entries += [(k, _subtask_text(labels, k)) for k in (-1, PERTURBED) if np.any(ep.subtask == k)]
     col_w = width // 2
     for n, (k, text) in enumerate(entries):
         x, y = x0 + (n % 2) * col_w, y0 + 22 + 18 * (n // 2)

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen.schema import ACTION_DIM, CAMERAS, CONTROL_HZ, IMAGE_SIZE, PROPRIO_DIM, EpisodeData, rot6d
+from datagen.schema import (ACTION_DIM, CAMERAS, CONTROL_HZ, IMAGE_SIZE, PERTURBATION, PERTURBED, PROPRIO_DIM,
+                            EpisodeData, rot6d)
 from sim.kinematics import Kinematics
 from sim.randomize import corrupt_image, sample_sensor_params
 from sim.render import CameraRenderer
@@ -40,13 +41,14 @@ class Recorder:
 
     def __call__(self, world, label: str = "", planned: np.ndarray | None = None) -> None:
         """`planned`: the joints the plan commands now when the executed ones are perturbed (datagen.dart);
-        the action is then the plan's target, not the perturbed command."""
+        the action is then the plan's target, not the perturbed command. A step whose segment is an injected
+        failure (`label` PERTURBATION) is recorded with subtask PERTURBED."""
         if world.time + 1e-9 < self.next_t:
             return
         self.next_t += self.period
-        self.sample(planned)
+        self.sample(planned, perturbed=label == PERTURBATION)
 
-    def sample(self, planned: np.ndarray | None = None) -> None:
+    def sample(self, planned: np.ndarray | None = None, perturbed: bool = False) -> None:
         w = self.world
         for name in CAMERAS:
             img = self._cams.rgb(CAMERA_NAMES[name])
@@ -56,7 +58,7 @@ class Recorder:
         self._proprio.append(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [w.gripper_position()], q]))
         Tc = self.kin.fk(w.arm_target() if planned is None else planned)
         self._target.append(np.concatenate([Tc[:3, 3], rot6d(Tc[:3, :3]), [w.gripper_command()]]))
-        self._subtasks.append(self.subtask)
+        self._subtasks.append(PERTURBED if perturbed else self.subtask)
         self._times.append(w.time)
 
     def start(self) -> None:

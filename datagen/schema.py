@@ -16,6 +16,11 @@ SCHEMA_VERSION = 1
 CONTROL_HZ = 10.0  # observation/action rate of the recorded data (the policy's rate)
 CAMERAS = ("scene", "wrist")  # dataset names of sim.scene.SCENE_CAMERA and sim.robot.WRIST_CAMERA
 IMAGE_SIZE = (128, 128)  # (height, width) of recorded images
+# A step of an injected failure (`sudd datagen --perturb/--perturb-grasp`: the gripper closing on air, the object
+# let go in transit) has subtask PERTURBED: what follows it (the recovery) is a demonstration, it is not, so
+# training never takes its actions as targets. PERTURBATION is the motion segments' label for those steps.
+PERTURBED = -2
+PERTURBATION = "perturbation"
 # proprio = TCP position (3), TCP rotation as the first two columns of its matrix (6), gripper closure (1),
 # joint angles (6)
 PROPRIO_DIM = 16
@@ -44,7 +49,8 @@ class EpisodeData:
     images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
     proprio: np.ndarray  # (T, PROPRIO_DIM) float32
     action: np.ndarray  # (T, ACTION_DIM) float32
-    subtask: np.ndarray  # (T,) int16 index into meta["subtasks"]; -1 while recovering
+    subtask: np.ndarray  # (T,) int16 index into meta["subtasks"]; -1 before the first, PERTURBED (-2) in an
+    #                      injected failure
     time: np.ndarray  # (T,) float64 sim seconds
     meta: dict = field(default_factory=dict)  # JSON-able: see `EPISODE_META_KEYS`
 
@@ -91,10 +97,22 @@ def episode_success(meta: dict) -> bool:
     return bool(meta.get("success"))
 
 
-def grasp_and_release_steps(action: np.ndarray) -> tuple[int, int]:
+def perturbed_actions(subtask: np.ndarray) -> np.ndarray:
+    """(T,) subtask -> (T,) bool: which recorded actions command an injected failure. The action of step t is
+    the target the arm had at step t + 1 (the last step's is its own), so it is one step ahead of the label."""
+    p = np.asarray(subtask) == PERTURBED
+    return np.concatenate([p[1:], p[-1:]])
+
+
+def grasp_and_release_steps(action: np.ndarray, subtask: np.ndarray | None = None) -> tuple[int, int]:
     """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> the step where the gripper first
-    closes and the step where it next opens (the episode's last step if it never does)."""
+    closes and the step where it next opens (the episode's last step if it never does). With the episode's
+    `subtask` (T,), injected failures do not count: through a PERTURBED step the gripper keeps the command it
+    had before, so a close on air is no grasp (the recovery's open is no release either: it was open)."""
     shut = action[:, -1] > 0.5
+    if subtask is not None and np.any(subtask == PERTURBED):
+        for t in np.flatnonzero(perturbed_actions(subtask)):
+            shut[t] = shut[t - 1] if t > 0 else False
     t_close = int(np.argmax(shut)) if shut.any() else len(shut) - 1
     after = np.flatnonzero(~shut[t_close:])
     t_open = t_close + int(after[0]) if len(after) else len(shut) - 1

@@ -55,8 +55,9 @@ def measure_offsets(dataset_dir: str | Path, episodes: int = 60) -> dict:
         meta = store.meta(row["index"])
         if meta["task"] != TASK or not episode_success(meta):
             continue
-        action = store.window(row["index"], fields=("action",))["action"]
-        close, opened = grasp_and_release_steps(action)
+        arrays = store.window(row["index"], fields=("action", "subtask"))
+        action = arrays["action"]
+        close, opened = grasp_and_release_steps(action, arrays["subtask"])
         h = meta.get("holdout") or {}
         ep = build_episode(TASK, meta["seed"], "heavy", meta.get("fidelity", "fast"),
                            holdout=Holdout(tuple(h.get("colors", ())), tuple(h.get("shapes", ()))))

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.schema import episode_success, grasp_and_release_steps  # noqa: F401 (policy.data API)
+from datagen.schema import episode_success, grasp_and_release_steps, perturbed_actions  # noqa: F401 (API)
 from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
 from policy.config import PolicyConfig
@@ -184,7 +184,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.action = [a["action"] if relative else self.normalizer.normalize_action(a["action"]) for a in low]
         self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
-        steps = [grasp_and_release_steps(a["action"]) for a in low]
+        steps = [grasp_and_release_steps(a["action"], a["subtask"]) for a in low]
         self.grasp_step = [ts[0] for ts in steps]
         self.release_step = [ts[1] for ts in steps]
         if cfg.aux_target_frame == "tcp":
@@ -193,8 +193,12 @@ class PolicyDataset(torch.utils.data.Dataset):
             self.aux = [grasp_and_release(a, ts) for a, ts in zip(self.action, steps)]
         self.lengths = [len(a["action"]) for a in low]
         self._language(embedder)
+        # no window whose chunk holds a step of an injected failure (datagen.schema.PERTURBED): the data shows
+        # how to recover from one, never how to make one
+        clean = [np.concatenate([[0], np.cumsum(perturbed_actions(a["subtask"]))]) for a in low]
         self.index = [(k, s) for k, T in enumerate(self.lengths)
-                      for s in range(-(To - 1), max(-(To - 1), T - Tp + Ta - 1) + 1)]
+                      for s in range(-(To - 1), max(-(To - 1), T - Tp + Ta - 1) + 1)
+                      if clean[k][min(T, s + Tp)] == clean[k][max(0, s)]]
         # with read_images=False a sample names its frames (rows of policy.feature_cache's table) instead
         self.read_images = read_images
         self.frame_offset = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)

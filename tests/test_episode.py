@@ -10,7 +10,7 @@ import pytest
 
 from datagen.episode import DatagenConfig, run_episode
 from datagen.planner import OfflinePlanner
-from datagen.schema import ACTION_DIM, CONTROL_HZ, rot6d_to_matrix
+from datagen.schema import ACTION_DIM, CONTROL_HZ, PERTURBED, grasp_and_release_steps, rot6d_to_matrix
 from runtime.cli import main
 
 FAST = DatagenConfig(dr="light", max_retries=2)
@@ -87,8 +87,10 @@ def test_perturbed_place_is_recovered_by_going_back_to_the_pick():
     assert [a["subtask"] for a in attempts] == [0, 1, 0, 1], attempts
     assert all("perturbed" in a["reason"] for a in attempts if a["subtask"] == 1)
     assert data.meta["retries"] == 2 and not data.meta["check_success"]
-    # The recovery is in the data, labelled with the subtask being retried (never -1).
-    assert data.subtask.min() >= 0 and (np.diff(data.subtask) < 0).any()
+    # The recovery is in the data, labelled with the subtask being retried (never -1); the drops themselves,
+    # which training must not imitate, are PERTURBED.
+    assert set(np.unique(data.subtask)) == {0, 1, PERTURBED}
+    assert (np.diff(data.subtask[data.subtask >= 0]) < 0).any()
 
 
 def test_missed_grasp_closes_above_the_object_and_is_recovered_by_grasping_again():
@@ -110,6 +112,10 @@ def test_missed_grasp_closes_above_the_object_and_is_recovered_by_grasping_again
     grip = data.action[i:, -1] > 0.5
     reopened = int(np.argmax(~grip))
     assert reopened > 0 and grip[reopened:].any()
+    # The close on air is marked as an injected failure, so it is no grasp to learn from.
+    # (an action is the next step's target: the labels are one step later)
+    assert data.subtask[i + 1] == PERTURBED and data.subtask[i + reopened + 1] == 0
+    assert grasp_and_release_steps(data.action, data.subtask)[0] > i + reopened
 
 
 def test_truncated_motion_keeps_its_start_and_ends_at_the_cut():

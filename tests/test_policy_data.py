@@ -169,3 +169,32 @@ def test_tcp_frame_aux_target_follows_the_sample_newest_step(data_dir):
         torch.testing.assert_close(got, want)
         seen.add(tuple(got.tolist()))
     assert len(seen) > 1  # unlike the base-frame target, it changes as the arm moves
+
+
+def test_no_window_learns_an_injected_failure_and_its_close_is_no_grasp(tmp_path, cfg):
+    from datagen.schema import PERTURBED, grasp_and_release_steps
+    from datagen.store import ShardWriter
+    from datagen.workers import synthetic_episode
+
+    ep = synthetic_episode("pick_place", 0, steps=40)
+    ep.meta.update(success=True, label={"success": True, "source": "synthetic"})
+    grip = np.zeros(40, np.float32)
+    grip[10:14] = 1.0  # closes on air (the injected failure) ...
+    grip[24:32] = 1.0  # ... then, after the recovery reopened it, the real grasp until the release at 32
+    ep.action[:, -1] = grip
+    ep.subtask[11:15] = PERTURBED  # the labels of the steps whose targets the actions 10-13 are
+    with ShardWriter(tmp_path, "w0") as w:
+        w.append(ep)
+    assert grasp_and_release_steps(ep.action) == (10, 14)  # what the close on air would count as
+    assert grasp_and_release_steps(ep.action, ep.subtask) == (24, 32)
+    ds = PolicyDataset(tmp_path, cfg, train=False, embedder=hash_embedder)
+    Tp = cfg.pred_horizon
+    starts = [s for _, s in ds.index]
+    touching = [s for s in range(-(cfg.obs_horizon - 1), 40) if max(0, s) <= 13 and s + Tp - 1 >= 10]
+    assert starts and not set(starts) & set(touching)
+    for index in range(len(ds)):  # and no learned chunk closes the gripper before step 24
+        s = ds.index[index][1]
+        acts = ds.normalizer.unnormalize_action(ds[index]["action"].numpy())
+        steps = np.clip(s + np.arange(Tp), 0, 39)
+        assert np.all(steps[acts[:, -1] > 0.5] >= 24)
+    assert ds.grasp_step == [24] and ds.release_step == [32]
