@@ -17,8 +17,8 @@ CONTROL_HZ = 10.0  # observation/action rate of the recorded data (the policy's 
 CAMERAS = ("scene", "wrist")  # dataset names of sim.scene.SCENE_CAMERA and sim.robot.WRIST_CAMERA
 IMAGE_SIZE = (128, 128)  # (height, width) of recorded images
 # A step of an injected failure (`sudd datagen --perturb/--perturb-grasp`: the gripper closing on air, the object
-# let go in transit) has subtask PERTURBED: what follows it (the recovery) is a demonstration, it is not, so
-# training never takes its actions as targets. PERTURBATION is the motion segments' label for those steps.
+# let go in transit) has subtask PERTURBED: the recovery that follows is a demonstration, the failure is not,
+# so training never takes its actions as targets. PERTURBATION is the motion segments' label for those steps.
 PERTURBED = -2
 PERTURBATION = "perturbation"
 # proprio = TCP position (3), TCP rotation as the first two columns of its matrix (6), gripper closure (1),
@@ -108,7 +108,9 @@ def grasp_and_release_steps(action: np.ndarray, subtask: np.ndarray | None = Non
     """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> the step where the gripper first
     closes and the step where it next opens (the episode's last step if it never does). With the episode's
     `subtask` (T,), injected failures do not count: through a PERTURBED step the gripper keeps the command it
-    had before, so a close on air is no grasp (the recovery's open is no release either: it was open)."""
+    had before, so a close on air is no grasp (the recovery's open is no release either: it was open). A drop
+    in transit (`--perturb`) still ends the first grasp where the recovery opens, near the drop: the steps
+    give the first grasp's cycle, not the one that put the object in place."""
     shut = action[:, -1] > 0.5
     if subtask is not None and np.any(subtask == PERTURBED):
         for t in np.flatnonzero(perturbed_actions(subtask)):
