@@ -104,18 +104,46 @@ def perturbed_actions(subtask: np.ndarray) -> np.ndarray:
     return np.concatenate([p[1:], p[-1:]])
 
 
+def grasp_and_release_per_step(action: np.ndarray, subtask: np.ndarray | None = None) -> np.ndarray:
+    """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> (T, 2) int: for each step, the step of
+    the grasp it is on its way to (or in) and of the release that grasp leads to. A grasp is where a closed
+    run of the gripper command starts, its release where the run ends (the last step if it never does).
+
+    With the episode's `subtask` (T,), injected failures (datagen.schema.PERTURBED) do not count: a close on
+    air is no grasp, and a run that a drop in transit ends was a grasp but no release, so every step before
+    the drop points at the grasp it made and at the release that finally put the object in place. Where no
+    grasp or release is left, the last one stands (the last step if there was none)."""
+    shut = np.asarray(action)[:, -1] > 0.5
+    T = len(shut)
+    bad = perturbed_actions(subtask) if subtask is not None else np.zeros(T, bool)
+    grasps, releases = [], []  # (step, end of its closed run)
+    t = 0
+    while t < T:
+        if not shut[t]:
+            t += 1
+            continue
+        end = t
+        while end < T and shut[end]:
+            end += 1
+        opened = min(end, T - 1)
+        if not bad[t]:
+            grasps.append((t, opened))
+            if not bad[opened] or end == T:
+                releases.append(opened)
+        t = end
+    out = np.full((T, 2), T - 1, np.int64)
+    for steps, column in ((grasps, 0), (releases, 1)):
+        if not steps:
+            continue
+        ends = np.array([e for _, e in steps] if column == 0 else steps)
+        starts = np.array([s for s, _ in steps] if column == 0 else steps)
+        k = np.minimum(np.searchsorted(ends, np.arange(T), side="right"), len(ends) - 1)
+        out[:, column] = starts[k]
+    return out
+
+
 def grasp_and_release_steps(action: np.ndarray, subtask: np.ndarray | None = None) -> tuple[int, int]:
-    """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> the step where the gripper first
-    closes and the step where it next opens (the episode's last step if it never does). With the episode's
-    `subtask` (T,), injected failures do not count: through a PERTURBED step the gripper keeps the command it
-    had before, so a close on air is no grasp (the recovery's open is no release either: it was open). A drop
-    in transit (`--perturb`) still ends the first grasp where the recovery opens, near the drop: the steps
-    give the first grasp's cycle, not the one that put the object in place."""
-    shut = action[:, -1] > 0.5
-    if subtask is not None and np.any(subtask == PERTURBED):
-        for t in np.flatnonzero(perturbed_actions(subtask)):
-            shut[t] = shut[t - 1] if t > 0 else False
-    t_close = int(np.argmax(shut)) if shut.any() else len(shut) - 1
-    after = np.flatnonzero(~shut[t_close:])
-    t_open = t_close + int(after[0]) if len(after) else len(shut) - 1
-    return t_close, t_open
+    """The first step's `grasp_and_release_per_step`: the episode's first grasp and the release it leads to
+    (the step where the gripper first closes and next opens, in an episode without injected failures)."""
+    g, r = grasp_and_release_per_step(action, subtask)[0]
+    return int(g), int(r)

@@ -43,7 +43,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.schema import episode_success, grasp_and_release_steps, perturbed_actions  # noqa: F401 (API)
+from datagen.schema import (episode_success, grasp_and_release_per_step,  # noqa: F401 (policy.data API)
+                            grasp_and_release_steps, perturbed_actions)
 from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
 from policy.config import PolicyConfig
@@ -184,13 +185,12 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.action = [a["action"] if relative else self.normalizer.normalize_action(a["action"]) for a in low]
         self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
-        steps = [grasp_and_release_steps(a["action"], a["subtask"]) for a in low]
-        self.grasp_step = [ts[0] for ts in steps]
-        self.release_step = [ts[1] for ts in steps]
+        # per step: the grasp it heads for and the release that grasp leads to (past injected failures)
+        self.cycle = [grasp_and_release_per_step(a["action"], a["subtask"]) for a in low]
+        self.grasp_step = [int(c[0, 0]) for c in self.cycle]
+        self.release_step = [int(c[0, 1]) for c in self.cycle]
         if cfg.aux_target_frame == "tcp":
-            self.aux_points = [a["action"][list(ts), :3] for a, ts in zip(low, steps)]
-        else:
-            self.aux = [grasp_and_release(a, ts) for a, ts in zip(self.action, steps)]
+            self.aux_points = [a["action"][c, :3] for a, c in zip(low, self.cycle)]  # (T, 2, 3)
         self.lengths = [len(a["action"]) for a in low]
         self._language(embedder)
         # no window whose chunk holds a step of an injected failure (datagen.schema.PERTURBED): the data shows
@@ -310,10 +310,10 @@ class PolicyDataset(torch.utils.data.Dataset):
     def aux_target(self, index: int) -> torch.Tensor:
         """The sample's auxiliary target (6,) in the config's `aux_target_frame`, without reading images."""
         k, s = self.index[index]
+        now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
         if self.cfg.aux_target_frame == "tcp":
-            now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
-            return relative_to_tcp(self.aux_points[k], self.tcp_pose[k][now])
-        return self.aux[k]
+            return relative_to_tcp(self.aux_points[k][now], self.tcp_pose[k][now])
+        return grasp_and_release(self.action[k], tuple(self.cycle[k][now]))
 
     def info(self) -> dict:
         """What the run records about its data (copied into the bundle manifest)."""

@@ -153,7 +153,7 @@ def test_data_holdout_is_the_union_of_what_the_episodes_kept_out():
 
 
 def test_tcp_frame_aux_target_follows_the_sample_newest_step(data_dir):
-    from policy.data import grasp_and_release_steps, relative_to_tcp
+    from policy.data import grasp_and_release_per_step, relative_to_tcp
 
     cfg = load_policy_config(TINY, {"aux_target_weight": 1.0, "aux_target_frame": "tcp"})
     ds = PolicyDataset(data_dir, cfg, train=False, embedder=hash_embedder)
@@ -163,7 +163,7 @@ def test_tcp_frame_aux_target_follows_the_sample_newest_step(data_dir):
         k, s = ds.index[index]
         arrays = raw.window(ds.episodes[k], fields=("proprio", "action"))
         now = int(np.clip(s + cfg.obs_horizon - 1, 0, ds.lengths[k] - 1))
-        steps = grasp_and_release_steps(arrays["action"])
+        steps = grasp_and_release_per_step(arrays["action"])[now]
         want = relative_to_tcp(arrays["action"][list(steps), :3], arrays["proprio"][now].astype(np.float64))
         got = ds[index]["aux"]
         torch.testing.assert_close(got, want)
@@ -198,3 +198,28 @@ def test_no_window_learns_an_injected_failure_and_its_close_is_no_grasp(tmp_path
         steps = np.clip(s + np.arange(Tp), 0, 39)
         assert np.all(steps[acts[:, -1] > 0.5] >= 24)
     assert ds.grasp_step == [24] and ds.release_step == [32]
+
+
+def _gripper(commands) -> np.ndarray:
+    action = np.zeros((len(commands), 10), np.float32)
+    action[:, -1] = commands
+    return action
+
+
+def test_each_step_heads_for_a_real_grasp_and_the_release_that_put_the_object_in_place():
+    from datagen.schema import PERTURBED, grasp_and_release_per_step
+
+    # no injected failure: the one grasp at 2 and its release at 5, for every step
+    assert grasp_and_release_per_step(_gripper([0, 0, 1, 1, 1, 0, 0])).tolist() == [[2, 5]] * 7
+    assert grasp_and_release_per_step(_gripper([0] * 4)).tolist() == [[3, 3]] * 4  # never closes
+    # a close on air (actions 2-3, labels one step later) is neither: the grasp at 6 and release at 9 are
+    sub = np.zeros(11, np.int16)
+    sub[3:5] = PERTURBED
+    missed = grasp_and_release_per_step(_gripper([0, 0, 1, 1, 0, 0, 1, 1, 1, 0, 0]), sub)
+    assert missed.tolist() == [[6, 9]] * 11
+    # a drop in transit (the open at action 4 is injected): before it, the grasp at 1; after it, the regrasp
+    # at 7; throughout, the release at 9 that put the object in place
+    sub = np.zeros(11, np.int16)
+    sub[5] = PERTURBED
+    dropped = grasp_and_release_per_step(_gripper([0, 1, 1, 1, 0, 0, 0, 1, 1, 0, 0]), sub)
+    assert dropped[:, 0].tolist() == [1, 1, 1, 1, 7, 7, 7, 7, 7, 7, 7] and set(dropped[:, 1]) == {9}
