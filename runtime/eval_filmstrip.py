@@ -1,4 +1,5 @@
-"""A filmstrip of a closed-loop episode: the scene camera every few seconds, one PNG, to see how it failed.
+"""A filmstrip of a closed-loop episode: the scene and wrist cameras every few seconds, one PNG, to see how it
+failed.
 
 A failure class says "held the named object, never placed it"; a strip shows whether it let go over the rim,
 carried it to the wrong bin or pressed the fingers into a wall. `sudd eval --filmstrips` writes one per
@@ -14,6 +15,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from sim.render import CameraRenderer
+from sim.robot import WRIST_CAMERA
 from sim.scene import SCENE_CAMERA
 
 _CAPTION_H = 18
@@ -23,13 +25,14 @@ _FG = (235, 235, 235)
 
 
 class Filmstrip:
-    """An observer for `run_policy_episode`: keeps a frame of `camera` every `every_s` of sim time (and the
-    last one seen), each captioned with the sim time and how far the gripper is closed."""
+    """An observer for `run_policy_episode`: keeps a frame of `cameras` (stacked top to bottom) every `every_s`
+    of sim time (and the last one seen), each captioned with the sim time and how far the gripper is closed."""
 
-    def __init__(self, every_s: float = 2.0, size: tuple[int, int] = (240, 180), camera: str = SCENE_CAMERA):
+    def __init__(self, every_s: float = 2.0, size: tuple[int, int] = (240, 180),
+                 cameras: tuple[str, ...] = (SCENE_CAMERA, WRIST_CAMERA)):
         if every_s <= 0:
             raise ValueError(f"every_s = {every_s}: expected a positive interval in seconds")
-        self.every_s, self.size, self.camera = float(every_s), (int(size[0]), int(size[1])), camera
+        self.every_s, self.size, self.cameras = float(every_s), (int(size[0]), int(size[1])), tuple(cameras)
         self.frames: list[tuple[str, np.ndarray]] = []
         self._next = 0.0
         self._renderer: CameraRenderer | None = None
@@ -46,14 +49,15 @@ class Filmstrip:
         if self._renderer is None:
             self._renderer = CameraRenderer(world, *self.size, shadows=False)
         closed = 100 * world.gripper_position()
-        self.frames.append((f"{world.time:.1f} s  closed {closed:.0f}%", self._renderer.rgb(self.camera).copy()))
+        image = np.concatenate([self._renderer.rgb(c) for c in self.cameras], axis=0)
+        self.frames.append((f"{world.time:.1f} s  closed {closed:.0f}%", image))
         self._grabbed_t = world.time
 
     def save(self, path: Path, title: str, columns: int = 8) -> Path:
         """Write the frames (plus the final state, if it was not the last frame) as a tiled PNG."""
         if self._world is not None and self._grabbed_t != self._world.time:
             self._grab(self._world)
-        w, h = self.size
+        w, h = self.size[0], self.size[1] * len(self.cameras)
         n = max(1, len(self.frames))
         cols = min(columns, n)
         rows = -(-n // cols)

@@ -121,7 +121,7 @@ def test_a_filmstrip_shows_the_episode_and_changes_nothing(collected, tmp_path):
     times = [float(c.split(" s")[0]) for c, _ in strip.frames]
     assert times[:3] == [0.0, 1.0, 2.0] and len(times) == 4 and 2.5 < times[3] <= 3.0  # every 1 s, then the end
     first, last = strip.frames[0][1], strip.frames[-1][1]
-    assert first.shape == (48, 64, 3) and np.abs(first.astype(int) - last).mean() > 1  # the arm moved
+    assert first.shape == (96, 64, 3) and np.abs(first.astype(int) - last).mean() > 1  # scene over wrist; it moved
     with Image.open(png) as im:
         assert im.size[0] == 4 * (64 + 4) + 4
 
