@@ -62,7 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "episodes)")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
-                         "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same with or without)")
+                         "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
+                         "with or without)")
     ev.add_argument("--controller", type=Path, metavar="FILE.toml",
                     help="chunk controller settings (as sudd run --controller): a TOML file of "
                          "runtime/controller/config.py's fields; recorded in summary.json")
