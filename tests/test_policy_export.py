@@ -313,6 +313,26 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
         parser.parse_args(["train", "data", "--out", "r"])  # --steps or --epochs is required
 
 
+def test_cli_train_passes_its_thread_count_and_refuses_zero(monkeypatch, capsys):
+    import argparse
+
+    import policy.train
+    from policy.cli import register
+
+    seen = []
+    monkeypatch.setattr(policy.train, "train", lambda *a, **kw: seen.append(kw["threads"]) or {
+        "run_dir": "r", "step": 1, "total_steps": 1, "final_loss": 0.5, "checkpoint": None, "plot": None})
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers(dest="command"))
+    for extra in (["--threads", "1"], []):
+        args = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", *extra])
+        assert args.func(args) == 0
+    assert seen == [1, None]
+    with pytest.raises(ValueError, match="--threads 0: expected a positive number"):
+        args = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", "--threads", "0"])
+        args.func(args)
+
+
 class _StandIn:
     """The bundle interface policy.sensitivity uses; actions depend on what `uses` names."""
 
