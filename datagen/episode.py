@@ -66,6 +66,9 @@ class DatagenConfig:
         return Holdout(colors=tuple(self.holdout_colors), shapes=tuple(self.holdout_shapes))
 
 
+MISSED = "perturbed: gripper closed above the object"
+
+
 def _dropped(motion: Motion, rng: np.random.Generator) -> Motion:
     """The place motion cut 10-40 % of the way (in transit), where the gripper lets go (a slip or a bump)."""
     cut = motion.truncated(motion.duration * rng.uniform(0.1, 0.4))
@@ -136,7 +139,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                     reason = "perturbed: object dropped during the place"
                 elif sub.primitive == "pick" and cfg.perturb_grasp and perturb_rng.random() < cfg.perturb_grasp:
                     motion = _missed(motion, perturb_rng)
-                    reason = "perturbed: gripper closed above the object"
+                    reason = MISSED
                 executed = True
                 run(motion)
                 ok = run_check(sub.check, state, scene)
@@ -157,7 +160,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                 # The world changed (or sampling keeps failing from here): recover — open, retreat, home — and
                 # retry with a fresh sample. Recovery steps keep the subtask's label, so the policy learns them.
                 try:
-                    run(prims.recover())
+                    run(prims.reopen() if reason.startswith(MISSED) else prims.recover())
                 except PrimitiveFailed as exc:
                     attempts[-1]["reason"] += f"; recovery failed: {exc}"
                 index = _resume_point(plan, index, state)

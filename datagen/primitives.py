@@ -103,11 +103,18 @@ class Primitives:
             raise PrimitiveFailed(f"pick({obj}): no reachable, collision-free grasp that holds in simulation")
         allow = self._supports(obj)
         errors = []
+        T0 = self.kin.fk(q0)
+        # a grasp whose approach the gripper is already on (after reopen()) goes on down from here
+        grasps = sorted(grasps, key=lambda g: not _on_approach(T0, g))
         for g in grasps:
             try:
-                transit = self.planner.joint_move(q0, g.q_pre, self.rng, self.budget, gripper=g.opening,
-                                                  clearance=0.005)
-                approach = self.planner.line(g.q_pre, g.T, gripper=g.opening)
+                transit = None
+                if _on_approach(T0, g):
+                    approach = self.planner.line(q0, g.T, gripper=g.opening)
+                else:
+                    transit = self.planner.joint_move(q0, g.q_pre, self.rng, self.budget, gripper=g.opening,
+                                                      clearance=0.005)
+                    approach = self.planner.line(g.q_pre, g.T, gripper=g.opening)
                 qg = approach[-1]
                 T_lift = self.kin.fk(qg)
                 T_lift[2, 3] += LIFT
@@ -115,8 +122,9 @@ class Primitives:
             except PlanningFailed as err:
                 errors.append(str(err))
                 continue
-            return Motion([Segment(_timed(transit, self.dt), transit, g.opening, "move to pre-grasp"),
-                           Segment(_timed(approach, self.dt), approach, g.opening, "approach"),
+            segments = [] if transit is None else [
+                Segment(_timed(transit, self.dt), transit, g.opening, "move to pre-grasp")]
+            return Motion([*segments, Segment(_timed(approach, self.dt), approach, g.opening, "approach"),
                            Segment.hold(qg, GRASP_SECONDS, 1.0, "grasp"),
                            Segment(_timed(lift, self.dt), lift, 1.0, "lift")])
         raise PrimitiveFailed(f"pick({obj}): {len(grasps)} grasps, none planned: {errors}")
@@ -161,6 +169,13 @@ class Primitives:
         except (PlanningFailed, KeyError, ValueError) as err:
             raise PrimitiveFailed(f"{verb}({joint}): {err}") from None
 
+    def reopen(self) -> Motion:
+        """Open the gripper where it is: after a close on air above an object that did not move, so that the
+        next pick goes on down from here. Backing off home instead would show, from the same open-gripper
+        view above the object, a retreat where every other demonstration descends (a policy averages the two
+        and hovers)."""
+        return Motion([Segment.hold(self.start_q(), RELEASE_SECONDS, 0.0, "release")])
+
     def recover(self) -> Motion:
         """Let go, back off upwards (tolerating what the arm touches now), and plan to the home pose."""
         self.checker.sync()
@@ -184,6 +199,17 @@ class Primitives:
             raise PrimitiveFailed(f"recover(): {err}") from None
         segs.append(Segment(_timed(home, self.dt), home, 0.0, "go home"))
         return Motion(segs)
+
+
+def _on_approach(T: np.ndarray, g, lateral: float = 0.01, degrees: float = 5.0) -> bool:
+    """Whether TCP pose T lies on grasp g's straight approach (between its pre-grasp and grasp poses, within
+    `lateral` of the line, turned at most `degrees` from the grasp's orientation)."""
+    a, b = g.T_pre[:3, 3], g.T[:3, 3]
+    axis = b - a
+    s = float(np.dot(T[:3, 3] - a, axis) / max(float(np.dot(axis, axis)), 1e-12))
+    off = np.linalg.norm(T[:3, 3] - (a + s * axis))
+    cos = (np.trace(g.T[:3, :3].T @ T[:3, :3]) - 1.0) / 2.0
+    return 0.0 <= s < 1.0 and off < lateral and cos > np.cos(np.radians(degrees))
 
 
 def _names(m) -> set:

@@ -93,7 +93,7 @@ def test_perturbed_place_is_recovered_by_going_back_to_the_pick():
     assert (np.diff(data.subtask[data.subtask >= 0]) < 0).any()
 
 
-def test_missed_grasp_closes_above_the_object_and_is_recovered_by_grasping_again():
+def test_missed_grasp_closes_above_the_object_and_is_recovered_by_reopening_and_going_on_down():
     normal = run_episode("pick_place", 6, FAST)
     data = run_episode("pick_place", 6, replace(FAST, max_retries=1, perturb_grasp=1.0))
     attempts = data.meta["attempts"]
@@ -116,6 +116,10 @@ def test_missed_grasp_closes_above_the_object_and_is_recovered_by_grasping_again
     # (an action is the next step's target: the labels are one step later)
     assert data.subtask[i + 1] == PERTURBED and data.subtask[i + reopened + 1] == 0
     assert grasp_and_release_steps(data.action, data.subtask)[0] > i + reopened
+    # The recovery opens where it is and goes on down the same approach (reopen()): backing off home would
+    # show a retreat from the very view above the object where every other demonstration descends.
+    second = i + reopened + int(np.argmax(grip[reopened:]))
+    assert data.proprio[i:second, 2].max() < z_missed + 0.002 and data.proprio[second, 2] < z_missed - 0.01
 
 
 def test_truncated_motion_keeps_its_start_and_ends_at_the_cut():
