@@ -43,7 +43,8 @@ class Filmstrip:
         self._world = world
         if world.time + 1e-9 >= self._next:
             self._grab(world)
-            self._next += self.every_s
+            while self._next <= world.time + 1e-9:  # the next multiple of every_s, however late this call
+                self._next += self.every_s
 
     def _grab(self, world) -> None:
         if self._renderer is None:

@@ -126,6 +126,18 @@ def test_a_filmstrip_shows_the_episode_and_changes_nothing(collected, tmp_path):
         assert im.size[0] == 4 * (64 + 4) + 4
 
 
+def test_a_filmstrip_keeps_one_frame_per_interval_however_its_calls_fall(monkeypatch):
+    from types import SimpleNamespace
+
+    from runtime.eval_filmstrip import Filmstrip
+
+    strip, grabbed = Filmstrip(every_s=2.0), []
+    monkeypatch.setattr(strip, "_grab", lambda world: grabbed.append(world.time))
+    for t in (0.0, 0.1, 1.9, 5.3, 5.4, 6.0, 6.1):
+        strip(SimpleNamespace(time=t), None)
+    assert grabbed == [0.0, 5.3, 6.0]  # after a gap, the next frame waits for the next multiple of 2 s
+
+
 def test_failure_classes():
     from runtime.eval_progress import GraspProgress
 
