@@ -224,46 +224,43 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
 
 
-def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, tmp_path, monkeypatch):
+@pytest.fixture
+def episode_kwargs(monkeypatch) -> list[dict]:
+    """The keyword arguments of every run_policy_episode call the eval CLI makes (the episodes still run)."""
     import runtime.evaluate
-    from runtime.cli import main
 
-    seen = []
-    real = runtime.evaluate.run_policy_episode
+    seen, real = [], runtime.evaluate.run_policy_episode
 
     def spy(*args, **kw):
-        seen.append(kw["controller"])
+        seen.append(kw)
         return real(*args, **kw)
 
     monkeypatch.setattr(runtime.evaluate, "run_policy_episode", spy)
+    return seen
+
+
+def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, tmp_path, episode_kwargs):
+    from runtime.cli import main
+
     toml = tmp_path / "hold.toml"
     toml.write_text("gripper_min_hold = 0.6\n")
     out = tmp_path / "eval"
     assert main(["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
                  "--time-limit-factor", "0.03", "--controller", str(toml), "--out", str(out)]) == 0
-    assert [c.gripper_min_hold for c in seen] == [0.6]
+    assert [kw["controller"].gripper_min_hold for kw in episode_kwargs] == [0.6]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["settings"]["controller"]["gripper_min_hold"] == 0.6
 
 
 def test_eval_cli_passes_a_fixed_latency_and_filmstrips_and_refuses_a_negative_latency(untrained_bundle, tmp_path,
-                                                                                          monkeypatch, capsys):
-    import runtime.evaluate
+                                                                                          episode_kwargs, capsys):
     from runtime.cli import main
 
-    seen = []
-    real = runtime.evaluate.run_policy_episode
-
-    def spy(*args, **kw):
-        seen.append(kw["latency_s"])
-        return real(*args, **kw)
-
-    monkeypatch.setattr(runtime.evaluate, "run_policy_episode", spy)
     base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
             "--time-limit-factor", "0.03"]
     assert main([*base, "--latency-ms", "6", "--filmstrips", "--out", str(tmp_path / "a")]) == 0
     assert main([*base, "--out", str(tmp_path / "b")]) == 0
-    assert seen == [0.006, None]
+    assert [kw["latency_s"] for kw in episode_kwargs] == [0.006, None]
     (a,), (b,) = (map(json.loads, (tmp_path / d / "results.jsonl").read_text().splitlines()) for d in "ab")
     assert not a["success"] and a["filmstrip"] == str(tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png")
     assert (tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png").stat().st_size > 1000
