@@ -116,7 +116,7 @@ def grasp_and_release_per_step(action: np.ndarray, subtask: np.ndarray | None = 
     shut = np.asarray(action)[:, -1] > 0.5
     T = len(shut)
     bad = perturbed_actions(subtask) if subtask is not None else np.zeros(T, bool)
-    grasps, releases = [], []  # (step, end of its closed run)
+    grasps, releases = [], []  # (step, the step until which it is the next one)
     t = 0
     while t < T:
         if not shut[t]:
@@ -129,16 +129,13 @@ def grasp_and_release_per_step(action: np.ndarray, subtask: np.ndarray | None = 
         if not bad[t]:
             grasps.append((t, opened))
             if not bad[opened] or end == T:
-                releases.append(opened)
+                releases.append((opened, opened))
         t = end
     out = np.full((T, 2), T - 1, np.int64)
-    for steps, column in ((grasps, 0), (releases, 1)):
-        if not steps:
-            continue
-        ends = np.array([e for _, e in steps] if column == 0 else steps)
-        starts = np.array([s for s, _ in steps] if column == 0 else steps)
-        k = np.minimum(np.searchsorted(ends, np.arange(T), side="right"), len(ends) - 1)
-        out[:, column] = starts[k]
+    for column, steps in enumerate((grasps, releases)):
+        if steps:
+            starts, ends = (np.array(v) for v in zip(*steps))
+            out[:, column] = starts[np.minimum(np.searchsorted(ends, np.arange(T), side="right"), len(ends) - 1)]
     return out
 
 
