@@ -12,6 +12,10 @@ episode could reach them:
 An episode that ends in a protective stop also keeps its stop as `end`, so the two read together:
 "protective_stop + wrong_object". Tasks without a named object (open a drawer) report only no_grasp.
 
+A target_not_placed episode also says where the named object was at the end (`target_end`): still "held",
+in a "wrong_bin", in the "goal" but not settled there, or "outside" every container (dropped on the way or let
+go beside its bin); and `target_lets_go` counts the times the gripper stopped holding it (one for a clean place).
+
 `closest_m` grades a no_grasp: how near the TCP came to the named object before it first held it. A blind
 policy that drives to the average target stays 10-20 cm away; one that sees closes to within a few cm and
 misses by a finger's width. Success rates of 0 % cannot tell those apart.
@@ -24,6 +28,7 @@ import numpy as np
 from sim.state import StateView
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
+TARGET_ENDS = ("held", "outside", "wrong_bin", "goal")
 
 
 def target_name(inst) -> str | None:
@@ -38,6 +43,8 @@ class GraspProgress:
         self.held: list[str] = []  # objects held at some tick, in the order first held
         self.target: str | None = None
         self.closest_m: float | None = None  # TCP to the named object, while the gripper had not yet held it
+        self.target_lets_go = 0  # times the named object went from held to not held
+        self._holding_target = False
         self._view = None
 
     def __call__(self, world, inst) -> None:
@@ -45,8 +52,12 @@ class GraspProgress:
             self._view = StateView(world)
             self.target = target_name(inst)
         for o in inst.objects:
-            if o.name not in self.held and self._view.holding(o.name):
+            holding = self._view.holding(o.name)
+            if o.name not in self.held and holding:
                 self.held.append(o.name)
+            if o.name == self.target:
+                self.target_lets_go += self._holding_target and not holding
+                self._holding_target = holding
         if self.target is not None and self.target not in self.held:
             d = float(np.linalg.norm(world.tcp_pose()[:3, 3] - self._view.position(self.target)))
             self.closest_m = d if self.closest_m is None else min(self.closest_m, d)
@@ -60,3 +71,16 @@ class GraspProgress:
         if self.target is not None and self.target not in self.held:
             return "wrong_object"
         return "target_not_placed"
+
+    def target_end(self, world, inst) -> str:
+        """Where the named object is now, one of TARGET_ENDS; "" for a task without one or one never held."""
+        if self.target is None or self.target not in self.held:
+            return ""
+        view = self._view or StateView(world)
+        if view.holding(self.target):
+            return "held"
+        goal = inst.params.get("bin")
+        bins = [f"bin_{name}" for name, _ in inst.params.get("bins", [])]
+        if goal and view.inside(self.target, goal):
+            return "goal"
+        return "wrong_bin" if any(view.inside(self.target, b) for b in bins if b != goal) else "outside"

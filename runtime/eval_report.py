@@ -55,7 +55,8 @@ def summarise(records: list[dict]) -> list[dict]:
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
                      "failures": dict(failures), "ends": dict(ends),
-                     "no_grasp_closest_cm": near[len(near) // 2] if near else None})
+                     "no_grasp_closest_cm": near[len(near) // 2] if near else None,
+                     "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end")))})
     return rows
 
 
@@ -74,19 +75,21 @@ def markdown_table(rows: list[dict]) -> str:
 
 def failure_table(rows: list[dict]) -> str:
     """Why the policy's failed episodes failed (runtime.eval_progress) and how they ended; "" if none failed."""
-    from runtime.eval_progress import FAILURES
+    from runtime.eval_progress import FAILURES, TARGET_ENDS
 
     pol = [r for r in rows if r["who"] == "policy" and r["successes"] < r["n"]]
     if not pol:
         return ""
     ends = sorted({e for r in pol for e in r.get("ends", {})})
     lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends))
-             + " | no_grasp: median closest approach |",
-             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 1)]
+             + " | no_grasp: median closest approach | target_not_placed: the object ended |",
+             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 2)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
         near = r.get("no_grasp_closest_cm")
         cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
         cells.append("-" if near is None else f"{near:.1f} cm")
+        where = r.get("target_ends", {})
+        cells.append(", ".join(f"{e} {where[e]}" for e in TARGET_ENDS if where.get(e)) or "-")
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

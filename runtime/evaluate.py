@@ -58,6 +58,8 @@ class EpisodeOutcome:
     held: list[str] = field(default_factory=list)  # objects the gripper held at some tick, first first
     failure: str = ""  # why it failed, one of runtime.eval_progress.FAILURES ("" on success)
     closest_cm: float | None = None  # nearest the TCP came to the named object before holding it
+    target_end: str = ""  # a failure that held the named object: where it ended (eval_progress.TARGET_ENDS)
+    target_lets_go: int = 0  # times the gripper stopped holding the named object
 
     def record(self) -> dict:
         out = asdict(self)
@@ -135,6 +137,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 events[e.kind] += 1
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
+        if not out.success:
+            out.target_end = progress.target_end(rig.world, inst)
+        out.target_lets_go = progress.target_lets_go
     finally:
         rec.close()
         rig.close()

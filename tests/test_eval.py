@@ -59,6 +59,23 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert policy.seen[0] == ((2, 128, 128, 3), (2, 128, 128, 3), (2, 16))
     assert out.target["color"] and out.target["shape"]
     assert out.held == [f"{out.target['color']} {out.target['shape']}"] and out.failure == ""
+    assert out.target_end == "" and out.target_lets_go == 1  # let go once: in its bin
+
+
+@pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
+def test_a_failure_says_where_the_named_object_ended(collected, change, where):
+    actions = np.array(collected.action)
+    grip = actions[:, 9]
+    grasp = int(np.argmax(grip > 0.5))
+    release = grasp + int(np.argmax(grip[grasp:] < 0.5))
+    assert 0 < grasp < release
+    if change == "never_open":
+        actions[grasp:, 9] = grip[grasp]
+    else:
+        actions[(grasp + release) // 2:, 9] = grip[release]
+    out = run_policy_episode(Replay(actions), "pick_place", SEED, dr="heavy", time_limit_factor=0.6)
+    assert out.failure == "target_not_placed" and out.target_end == where, out.record()
+    assert out.target_lets_go == (where != "held")
 
 
 def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
@@ -182,19 +199,21 @@ def test_summary_table_and_chart(tmp_path):
     recs += [{"suite": "seen", "task": "pick_place", "who": "collector", "success": s, "sim_seconds": 8.0}
              for s in (True, False, False, False)]
     recs[3].update(failure="wrong_object", end="protective_stop", closest_cm=1.0)  # held: not a no_grasp
+    recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
+              "failure": "target_not_placed", "end": "timeout", "target_end": e} for e in ("outside", "held", "outside")]
     recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "no_grasp", "end": "timeout", "closest_cm": c} for c in (12.5, 3.0, 7.25)]
     rows = summarise(recs)
     assert [(r["suite"], r["who"], r["successes"], r["n"]) for r in rows] == [
-        ("seen", "collector", 1, 4), ("seen", "policy", 3, 4), ("paraphrase", "policy", 0, 3)]
+        ("seen", "collector", 1, 4), ("seen", "policy", 3, 7), ("paraphrase", "policy", 0, 3)]
     table = markdown_table(rows)
-    assert "| seen | pick_place | 3/4 = 75% [30, 95] | 1/4 = 25% [5, 70] | 9.0 s |" in table
+    assert "| seen | pick_place | 3/7 = 43% [16, 75] | 1/4 = 25% [5, 70] | 9.0 s |" in table
     assert "| paraphrase | pick_place | 0/3 = 0% [0, 56] | - | - |" in table
     why = failure_table(rows).splitlines()
     assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
-                      "| ended: timeout | no_grasp: median closest approach |")
-    assert why[2:] == ["| seen | pick_place | 1 | 0 | 1 | 0 | 1 | 0 | - |",
-                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm |"]
+                      "| ended: timeout | no_grasp: median closest approach | target_not_placed: the object ended |")
+    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | held 1, outside 2 |",
+                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm | - |"]
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
