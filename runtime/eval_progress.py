@@ -4,7 +4,8 @@ A success rate says how often; this says where a policy goes wrong, which is wha
 experiment (more data? better grounding? finer placing?). The classes, in the order a pick-and-place
 episode could reach them:
 
-    no_grasp          the gripper never held any object
+    no_grasp          the gripper never held any object ("held": both finger pads on it and the object lifted at
+                      least LIFT_M off where it started, so fingertips resting on a bar's top do not count)
     wrong_object      it held an object, never the one the command named
     target_not_placed it held the named object, but the episode ended without the task's success
                       (dropped on the way, released outside the goal, or stopped while carrying it)
@@ -29,6 +30,7 @@ from sim.state import StateView
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
 TARGET_ENDS = ("held", "outside", "wrong_bin", "goal")
+LIFT_M = 0.01
 
 
 def target_name(inst) -> str | None:
@@ -46,13 +48,15 @@ class GraspProgress:
         self.target_lets_go = 0  # times the named object went from held to not held
         self._holding_target = False
         self._view = None
+        self._start_z: dict[str, float] = {}
 
     def __call__(self, world, inst) -> None:
         if self._view is None:
             self._view = StateView(world)
             self.target = target_name(inst)
+            self._start_z = {o.name: float(self._view.position(o.name)[2]) for o in inst.objects}
         for o in inst.objects:
-            holding = self._view.holding(o.name)
+            holding = self._holds(o.name)
             if o.name not in self.held and holding:
                 self.held.append(o.name)
             if o.name == self.target:
@@ -61,6 +65,9 @@ class GraspProgress:
         if self.target is not None and self.target not in self.held:
             d = float(np.linalg.norm(world.tcp_pose()[:3, 3] - self._view.position(self.target)))
             self.closest_m = d if self.closest_m is None else min(self.closest_m, d)
+
+    def _holds(self, name: str) -> bool:
+        return self._view.holding(name) and self._view.position(name)[2] - self._start_z[name] >= LIFT_M
 
     def failure(self, success: bool) -> str:
         """One of FAILURES, or "" for a success."""
@@ -72,12 +79,12 @@ class GraspProgress:
             return "wrong_object"
         return "target_not_placed"
 
-    def target_end(self, world, inst) -> str:
+    def target_end(self, inst) -> str:
         """Where the named object is now, one of TARGET_ENDS; "" for a task without one or one never held."""
         if self.target is None or self.target not in self.held:
             return ""
-        view = self._view or StateView(world)
-        if view.holding(self.target):
+        view = self._view  # set by the first call, which came before any object could be held
+        if self._holds(self.target):
             return "held"
         goal = inst.params.get("bin")
         bins = [f"bin_{name}" for name, _ in inst.params.get("bins", [])]

@@ -138,7 +138,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
         if not out.success:
-            out.target_end = progress.target_end(rig.world, inst)
+            out.target_end = progress.target_end(inst)
         out.target_lets_go = progress.target_lets_go
     finally:
         rec.close()

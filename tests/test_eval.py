@@ -169,6 +169,29 @@ def test_failure_classes():
     assert p.failure(False) == "target_not_placed"
 
 
+def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
+    from types import SimpleNamespace
+
+    from runtime import eval_progress
+    from runtime.eval_progress import LIFT_M, GraspProgress
+
+    z = {"obj0": 0.02, "obj1": 0.02}
+    view = SimpleNamespace(holding=lambda name: name == "obj0", position=lambda name: np.array([0.0, 0.5, z[name]]))
+    world = SimpleNamespace(tcp_pose=lambda: np.eye(4))
+    inst = SimpleNamespace(params={"target": "obj0"}, objects=[SimpleNamespace(name=n) for n in z])
+    monkeypatch.setattr(eval_progress, "StateView", lambda w: view)
+    p = GraspProgress()
+    p(world, inst)  # fingertips on the bar's top, both pads touching: not a grasp
+    assert p.held == [] and p.failure(False) == "no_grasp"
+    z["obj0"] += LIFT_M + 0.005
+    p(world, inst)
+    assert p.held == ["obj0"] and p.failure(False) == "target_not_placed" and p.target_end(inst) == "held"
+    view.holding = lambda name: False
+    view.inside = lambda obj, container: False
+    p(world, inst)
+    assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
+
+
 def test_paraphrases_are_phrasings_the_data_never_used():
     dr = load_dr("heavy")
     for name in TASKS:
