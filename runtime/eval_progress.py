@@ -67,7 +67,7 @@ class GraspProgress:
             self.closest_m = d if self.closest_m is None else min(self.closest_m, d)
 
     def _holds(self, name: str) -> bool:
-        return self._view.holding(name) and self._view.position(name)[2] - self._start_z[name] >= LIFT_M
+        return bool(self._view.holding(name) and self._view.position(name)[2] - self._start_z[name] >= LIFT_M)
 
     def failure(self, success: bool) -> str:
         """One of FAILURES, or "" for a success."""

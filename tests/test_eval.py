@@ -76,6 +76,7 @@ def test_a_failure_says_where_the_named_object_ended(collected, change, where):
     out = run_policy_episode(Replay(actions), "pick_place", SEED, dr="heavy", time_limit_factor=0.6)
     assert out.failure == "target_not_placed" and out.target_end == where, out.record()
     assert out.target_lets_go == (where != "held")
+    assert json.loads(json.dumps(out.record()))["target_end"] == where  # plain Python types: results.jsonl
 
 
 def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
