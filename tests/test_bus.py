@@ -199,13 +199,17 @@ def test_frames_through_shared_memory(shm_a, shm_b):
         c.subscribe(b.camera_color("wrist"), got.append)
         pub = a.publisher(b.camera_color("wrist"))
         assert pub.wait_matched()
-        f = frame()
-        for _ in range(3):
+        f, sent = frame(), 0
+        # Camera frames go out with congestion control DROP: on a loaded machine one may be dropped, so send
+        # until three have arrived rather than expect each of three to.
+        while len(got) < 3 and sent < 30:
             pub.publish(f)
-        assert wait_until(lambda: len(got) == 3)
+            sent += 1
+            wait_until(lambda: len(got) >= min(sent, 3), timeout_s=0.5)
+        assert len(got) >= 3, f"{len(got)} of {sent} frames arrived"
         assert np.array_equal(got[-1].color, f.color) and got[-1].intrinsics == f.intrinsics
         if a.shm_provider is not None:  # a receiver without SHM gets a copy from Zenoh
-            assert pub.stats.shm == 3
+            assert pub.stats.shm == sent
     finally:
         c.close()
         a.close()
