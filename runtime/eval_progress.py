@@ -15,7 +15,7 @@ An episode that ends in a protective stop also keeps its stop as `end`, so the t
 
 A target_not_placed episode also says where the named object was at the end (`target_end`): still "held",
 in a "wrong_bin", in the "goal" but not settled there, or "outside" every container (dropped on the way or let
-go beside its bin); and `target_lets_go` counts the times the gripper stopped holding it (one for a clean place).
+go beside its bin); "released" for a task without bins (stack, drawer_put); and `target_lets_go` counts the times the gripper stopped holding it (one for a clean place).
 
 `closest_m` grades a no_grasp: how near the TCP came to the named object before it first held it. A blind
 policy that drives to the average target stays 10-20 cm away; one that sees closes to within a few cm and
@@ -29,7 +29,7 @@ import numpy as np
 from sim.state import StateView
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
-TARGET_ENDS = ("held", "outside", "wrong_bin", "goal")
+TARGET_ENDS = ("held", "outside", "wrong_bin", "goal", "released")
 LIFT_M = 0.01
 
 
@@ -88,6 +88,8 @@ class GraspProgress:
             return "held"
         goal = inst.params.get("bin")
         bins = [f"bin_{name}" for name, _ in inst.params.get("bins", [])]
-        if goal and view.inside(self.target, goal):
+        if not goal:
+            return "released"
+        if view.inside(self.target, goal):
             return "goal"
         return "wrong_bin" if any(view.inside(self.target, b) for b in bins if b != goal) else "outside"

@@ -179,7 +179,8 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     z = {"obj0": 0.02, "obj1": 0.02}
     view = SimpleNamespace(holding=lambda name: name == "obj0", position=lambda name: np.array([0.0, 0.5, z[name]]))
     world = SimpleNamespace(tcp_pose=lambda: np.eye(4))
-    inst = SimpleNamespace(params={"target": "obj0"}, objects=[SimpleNamespace(name=n) for n in z])
+    bins = {"target": "obj0", "bin": "bin_left", "bins": [["left", 0.16], ["right", -0.16]]}
+    inst = SimpleNamespace(params=bins, objects=[SimpleNamespace(name=n) for n in z])
     monkeypatch.setattr(eval_progress, "StateView", lambda w: view)
     p = GraspProgress()
     p(world, inst)  # fingertips on the bar's top, both pads touching: not a grasp
@@ -191,6 +192,9 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     view.inside = lambda obj, container: False
     p(world, inst)
     assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
+    view.inside = lambda obj, container: container == "bin_right"
+    assert p.target_end(inst) == "wrong_bin"
+    assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
 
 
 def test_paraphrases_are_phrasings_the_data_never_used():
