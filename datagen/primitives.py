@@ -105,11 +105,11 @@ class Primitives:
         errors = []
         T0 = self.kin.fk(q0)
         # a grasp whose approach the gripper is already on (after reopen()) goes on down from here
-        grasps = sorted(grasps, key=lambda g: not _on_approach(T0, g))
-        for g in grasps:
+        ranked = sorted(((_on_approach(T0, g), g) for g in grasps), key=lambda p: not p[0])
+        for on_line, g in ranked:
             try:
                 transit = None
-                if _on_approach(T0, g):
+                if on_line:
                     approach = self.planner.line(q0, g.T, gripper=g.opening)
                 else:
                     transit = self.planner.joint_move(q0, g.q_pre, self.rng, self.budget, gripper=g.opening,
