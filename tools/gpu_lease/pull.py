@@ -16,6 +16,7 @@ if ck:
                 "config": s["config"], "torch": s["torch"]}, dst / f"{run.name}.pt")
     print("pulled", run.name, ck[-1].name)
 with tarfile.open(dst / f"{run.name}.tar", "w") as tar:
-    for f in ("config.json", "stats.npz", "dataset.json", "metrics.jsonl", "plan.json", "summary.json", "DONE"):
+    for f in ("config.json", "stats.npz", "dataset.json", "warm_start.json", "metrics.jsonl", "plan.json",
+              "summary.json", "DONE"):
         if (run / f).exists():
             tar.add(run / f, arcname=f)

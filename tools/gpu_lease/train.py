@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.getcwd())
+import policy.train  # noqa: E402
 from policy.train import train  # noqa: E402
 
 CONFIG = "policy/configs/demo_pick_place.toml"
@@ -26,20 +27,33 @@ def main() -> None:
             raise KeyError(f"{len(missing)} texts were not embedded ahead (texts.py), e.g. {missing[:3]}")
         return tab["table"][[row[t] for t in texts]]
 
+    init_from = extra.pop("init_from", None)  # a run directory carried along (.gpu/run_pre3: the pretrained encoders)
     device = "cuda" if torch.cuda.is_available() else "cpu"  # cpu: a dry run of the scripts
     ov = {"batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
           "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
           **extra}
+    # with feature_cache both legs below would encode every frame: the frozen encoders give the same table twice
+    encode, memo = policy.train.image_feature_table, {}
+
+    def table_once(model, ds, copies, **kw):
+        key = (copies, kw.get("seed"), ds.num_frames)
+        if key not in memo:
+            memo[key] = encode(model, ds, copies, **kw)
+        return memo[key]
+
+    policy.train.image_feature_table = table_once
     # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
     probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
-    train(data, CONFIG, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=False)
+    train(data, CONFIG, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
+          init_from=init_from)
     rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
-    rate = float(np.median([r["steps_per_s"] for r in rows[len(rows) // 2:]]))
+    rates = [r["steps_per_s"] for r in rows if "steps_per_s" in r]  # validation rows have none
+    rate = float(np.median(rates[len(rates) // 2:]))
     load_s = time.time() - t0 - probe / rate
     steps = int(max(probe + 100, rate * (deadline - time.time() - load_s - 30)))
     (out / "plan.json").write_text(json.dumps({"rate": rate, "load_s": load_s, "steps": steps, "overrides": ov}))
     print(out.name, json.dumps(train(data, CONFIG, out, steps=steps, embedder=embed, overrides=ov, device=device,
-                                     progress=False)), flush=True)
+                                     progress=True)), flush=True)
     (out / "DONE").write_text("ok")
 
 
