@@ -11,6 +11,13 @@ The offset is on while the arm moves and off while the gripper acts (grasps, rel
 be picked and placed for the episode to count); it fades over `fade_s` into each gripper action, so an
 approach or a descent comes in from off the plan and ends exactly on it, the correction the policy needs
 near contact. It starts and ends each motion at zero, so the next motion starts where the plan said.
+
+A grasp offset (`grasp_sigma`) is the exception, on purpose: with the path noise alone every close in the data
+happens exactly on the plan, so a policy learns to close only there, and one that arrives a centimetre off
+hovers open beside the object (traced in closed loop). With it each grasp happens at a constant horizontal
+offset (never vertical: the fingers must not be pushed into the table), faded in over the approach's last
+`fade_s` and out over the lift's first, while the labels still point at the plan: close when near, and
+steer the rest of the way while closing.
 """
 
 from __future__ import annotations
@@ -46,6 +53,21 @@ def envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
     return e
 
 
+def grasp_envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
+    """Per step in [0, 1]: 1 while the gripper grasps, with ramps of `fade_s` out into the steps around it (a
+    dilation: the offset is whole before the fingers close) and 0 at both ends of the motion."""
+    g = np.array([1.0 if lab == "grasp" else 0.0 for lab in labels])
+    if len(g) == 0:
+        return g
+    slope = dt / max(fade_s, dt)
+    for k in range(1, len(g)):
+        g[k] = max(g[k], g[k - 1] - slope)
+    for k in range(len(g) - 2, -1, -1):
+        g[k] = max(g[k], g[k + 1] - slope)
+    steps = np.arange(len(g))
+    return np.minimum(g, np.minimum(steps, steps[::-1]) * slope)
+
+
 def smooth_offsets(n: int, dt: float, sigma: float, tau_s: float, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) TCP offsets in metres: a stationary OU process of std `sigma` and correlation time `tau_s`."""
     if n == 0:
@@ -65,12 +87,16 @@ def smooth_offsets(n: int, dt: float, sigma: float, tau_s: float, rng: np.random
 
 
 def joint_offsets(motion: Motion, kin, dt: float, rng: np.random.Generator, sigma: float,
-                  tau_s: float = 1.0, fade_s: float = 0.5, damping: float = 1e-3) -> np.ndarray:
+                  tau_s: float = 1.0, fade_s: float = 0.5, damping: float = 1e-3,
+                  grasp_sigma: float = 0.0) -> np.ndarray:
     """(steps, 6) joint offsets to add to `motion`'s targets, step by step as `execute` runs them: the TCP
     moves by the enveloped offset (damped least squares on the Jacobian at the planned joints; the rotation
-    is held)."""
+    is held). grasp_sigma > 0 adds one horizontal offset of that std per axis around the motion's grasp."""
     labels = step_labels(motion, dt)
     d = smooth_offsets(len(labels), dt, sigma, tau_s, rng) * envelope(labels, dt, fade_s)[:, None]
+    if grasp_sigma > 0:  # drawn after the path's offsets, which therefore stay those of grasp_sigma = 0
+        held = np.array([*rng.normal(0.0, grasp_sigma, 2), 0.0])
+        d = d + grasp_envelope(labels, dt, fade_s)[:, None] * held
     planned = np.concatenate([seg.targets(dt) for seg in motion.segments]) if motion.segments else np.zeros((0, 6))
     out = np.zeros((len(labels), 6))
     for k in np.flatnonzero(np.any(d != 0.0, axis=1)):
@@ -80,4 +106,4 @@ def joint_offsets(motion: Motion, kin, dt: float, rng: np.random.Generator, sigm
     return out
 
 
-__all__ = ["MOVING", "envelope", "joint_offsets", "smooth_offsets", "step_labels"]
+__all__ = ["MOVING", "envelope", "grasp_envelope", "joint_offsets", "smooth_offsets", "step_labels"]

@@ -57,6 +57,10 @@ class DatagenConfig:
         "DART noise injection (datagen/dart.py): the executed TCP path is pushed off the plan while it moves "
         "by a smooth random offset of this std per axis, the recorded actions stay the plan's, so the policy "
         "learns to steer back; 0 leaves episodes exactly as without it")))
+    grasp_noise_cm: float = field(default=0.0, metadata=spec(0.0, 3.0, "cm", doc=(
+        "each grasp happens at a random horizontal offset of this std per axis from the planned grasp "
+        "(datagen/dart.py), the recorded actions stay the plan's, so the policy learns to close when near, "
+        "not only exactly on the plan; 0 leaves episodes exactly as without it")))
     holdout_colors: tuple[str, ...] = field(default=(), metadata=spec(choices=OBJECT_COLORS,
                                             doc="object colours never used (kept for a held-out evaluation)"))
     holdout_shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES,
@@ -119,8 +123,9 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
 
     def run(motion: Motion) -> None:
         offsets = None
-        if cfg.path_noise_cm > 0:
-            offsets = joint_offsets(motion, prims.kin, world.timestep, dart_rng, cfg.path_noise_cm / 100.0)
+        if cfg.path_noise_cm > 0 or cfg.grasp_noise_cm > 0:
+            offsets = joint_offsets(motion, prims.kin, world.timestep, dart_rng, cfg.path_noise_cm / 100.0,
+                                    grasp_sigma=cfg.grasp_noise_cm / 100.0)
         execute(world, motion, observer=recorder, offsets=offsets)
 
     tries = [0] * len(plan.subtasks)
@@ -187,6 +192,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
         }
         if cfg.path_noise_cm > 0:  # only then: datasets made without it keep their content hash
             meta["path_noise_cm"] = cfg.path_noise_cm
+        if cfg.grasp_noise_cm > 0:
+            meta["grasp_noise_cm"] = cfg.grasp_noise_cm
         return recorder.finish(meta)
     finally:
         recorder.close()

@@ -45,6 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="DART noise injection: push the executed path off the plan while the arm moves by a smooth "
                           "offset of this std (cm per axis) while the actions stay the plan's, so the policy "
                           "learns to steer back to it (0-5; default 0: off)")
+    gen.add_argument("--grasp-noise-cm", type=float, default=0.0, metavar="CM",
+                     help="close each grasp at a random horizontal offset of this std (cm per axis) from the "
+                          "planned grasp while the actions stay the plan's, so the policy learns to close when "
+                          "near, not only exactly on the plan (0-3; default 0: off)")
     gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                      help="never use this object colour (repeatable), so `sudd eval --heldout` can test it")
     gen.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
@@ -71,7 +75,7 @@ def _generate(args) -> int:
     cfg = load_config(DatagenConfig, {
         "dr": args.dr, "fidelity": args.fidelity, "max_retries": args.max_retries, "label": args.label,
         "perturb": args.perturb, "perturb_grasp": args.perturb_grasp,
-        "path_noise_cm": args.path_noise_cm,
+        "path_noise_cm": args.path_noise_cm, "grasp_noise_cm": args.grasp_noise_cm,
         "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
     summary = generate(tasks, args.episodes, args.out, args.workers, partial(run_episode, cfg=cfg),

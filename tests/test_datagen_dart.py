@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from datagen.dart import envelope, joint_offsets, smooth_offsets, step_labels
+from datagen.dart import envelope, grasp_envelope, joint_offsets, smooth_offsets, step_labels
 from datagen.episode import DatagenConfig, run_episode
 from datagen.trajectory import Motion, Segment
 from sim.kinematics import Kinematics
@@ -24,6 +24,13 @@ def _motion() -> Motion:
     return Motion([move, approach, Segment.hold(q1 + 0.05, 0.5, 1.0, "grasp")])
 
 
+def _pick_motion() -> Motion:
+    m = _motion()
+    q = m.segments[-1].targets(DT)[-1]
+    lift = Segment(np.linspace(0.0, 1.0, 6), np.linspace(q, q - 0.05, 6), 1.0, "lift")
+    return Motion([*m.segments, lift])
+
+
 def test_envelope_is_off_at_the_ends_and_while_the_gripper_acts_and_ramps_in_between():
     labels = step_labels(_motion(), DT)
     assert len(labels) == round(3.5 / DT)
@@ -33,6 +40,32 @@ def test_envelope_is_off_at_the_ends_and_while_the_gripper_acts_and_ramps_in_bet
     assert np.all(e[grasp] == 0.0)  # the gripper closes exactly where the plan says
     assert np.all(np.abs(np.diff(e)) <= DT / 0.5 + 1e-12)  # no jumps: ramps of fade_s
     assert e.max() == 1.0 and np.all((0.0 <= e) & (e <= 1.0))
+
+
+def test_grasp_envelope_is_whole_while_the_gripper_grasps_and_ramps_around_it():
+    labels = step_labels(_pick_motion(), DT)
+    g = grasp_envelope(labels, DT, fade_s=0.5)
+    grasp = np.array([lab == "grasp" for lab in labels])
+    assert np.all(g[grasp] == 1.0) and g[-1] == 0.0 and g[0] == 0.0
+    ramp = np.flatnonzero(grasp)[0] - round(0.5 / DT)  # the approach's last fade_s rises to it
+    assert g[ramp - 1] == 0.0 and 0.0 < g[ramp + 10] < 1.0
+    assert np.all(np.abs(np.diff(g)) <= DT / 0.5 + 1e-12)
+
+
+def test_grasp_offset_is_horizontal_constant_through_the_grasp_and_leaves_the_path_noise_alone():
+    kin = Kinematics.with_tcp_z("ur5e", TCP_OFFSET_Z)
+    motion = _pick_motion()
+    plain = joint_offsets(motion, kin, DT, np.random.default_rng(3), sigma=0.02)
+    dq = joint_offsets(motion, kin, DT, np.random.default_rng(3), sigma=0.02, grasp_sigma=0.01)
+    labels = step_labels(motion, DT)
+    g = grasp_envelope(labels, DT, 0.5)
+    assert np.array_equal(dq[g == 0.0], plain[g == 0.0])  # the path's draws are those without it
+    planned = np.concatenate([s.targets(DT) for s in motion.segments])
+    grasp = np.flatnonzero(np.array([lab == "grasp" for lab in labels]))
+    moved = np.array([kin.fk(planned[k] + dq[k])[:3, 3] - kin.fk(planned[k])[:3, 3] for k in grasp[::25]])
+    assert np.linalg.norm(moved[0, :2]) > 0.002  # an offset of ~1 cm std: this draw is not near zero
+    assert np.abs(moved[:, 2]).max() < 5e-4  # never vertical: the fingers stay off the table
+    assert np.abs(moved - moved[0]).max() < 5e-4  # held while the fingers close
 
 
 def test_offsets_have_the_asked_spread_and_move_smoothly():
@@ -78,3 +111,14 @@ def test_noisy_episode_keeps_the_plans_actions_and_leaves_its_path(clean_and_noi
     assert dev.max() > 0.01
     close = int(np.argmax(clean.action[:, 9] > 0.5))  # the step whose action closes the gripper
     assert dev[close] < 0.002
+
+
+def test_grasp_noise_closes_the_fingers_off_the_plan_while_the_actions_keep_it():
+    cfg = DatagenConfig(dr="light", max_retries=2)
+    clean = run_episode("pick_place", 0, cfg)
+    noisy = run_episode("pick_place", 0, replace(cfg, grasp_noise_cm=1.0))
+    assert noisy.meta["grasp_noise_cm"] == 1.0 and "grasp_noise_cm" not in clean.meta
+    close = int(np.argmax(clean.action[:, 9] > 0.5))
+    assert np.array_equal(clean.action[:close + 1], noisy.action[:close + 1])
+    dev = noisy.proprio[close, :3] - clean.proprio[close, :3]
+    assert np.linalg.norm(dev[:2]) > 0.002 and abs(dev[2]) < 0.002
