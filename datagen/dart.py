@@ -91,7 +91,7 @@ def joint_offsets(motion: Motion, kin, dt: float, rng: np.random.Generator, sigm
                   grasp_sigma: float = 0.0) -> np.ndarray:
     """(steps, 6) joint offsets to add to `motion`'s targets, step by step as `execute` runs them: the TCP
     moves by the enveloped offset (damped least squares on the Jacobian at the planned joints; the rotation
-    is held). grasp_sigma > 0 adds one horizontal offset of that std per axis around the motion's grasp."""
+    is held). grasp_sigma > 0 adds one horizontal offset of that std per axis around a pick's "grasp" segment."""
     labels = step_labels(motion, dt)
     d = smooth_offsets(len(labels), dt, sigma, tau_s, rng) * envelope(labels, dt, fade_s)[:, None]
     if grasp_sigma > 0:  # drawn after the path's offsets, which therefore stay those of grasp_sigma = 0

@@ -58,7 +58,7 @@ class DatagenConfig:
         "by a smooth random offset of this std per axis, the recorded actions stay the plan's, so the policy "
         "learns to steer back; 0 leaves episodes exactly as without it")))
     grasp_noise_cm: float = field(default=0.0, metadata=spec(0.0, 3.0, "cm", doc=(
-        "each grasp happens at a random horizontal offset of this std per axis from the planned grasp "
+        "each pick's grasp happens at a random horizontal offset of this std per axis from the planned one "
         "(datagen/dart.py), the recorded actions stay the plan's, so the policy learns to close when near, "
         "not only exactly on the plan; 0 leaves episodes exactly as without it")))
     holdout_colors: tuple[str, ...] = field(default=(), metadata=spec(choices=OBJECT_COLORS,

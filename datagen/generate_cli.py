@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "offset of this std (cm per axis) while the actions stay the plan's, so the policy "
                           "learns to steer back to it (0-5; default 0: off)")
     gen.add_argument("--grasp-noise-cm", type=float, default=0.0, metavar="CM",
-                     help="close each grasp at a random horizontal offset of this std (cm per axis) from the "
+                     help="close each pick's grasp at a random horizontal offset of this std (cm per axis) from the "
                           "planned grasp while the actions stay the plan's, so the policy learns to close when "
                           "near, not only exactly on the plan (0-3; default 0: off)")
     gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
