@@ -38,14 +38,8 @@ def step_labels(motion: Motion, dt: float) -> list[str]:
     return [seg.label for seg in motion.segments for _ in range(seg.steps(dt))]
 
 
-def envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
-    """Per step in [0, 1]: 1 inside moving segments, 0 elsewhere and at both ends of the motion, with ramps of
-    `fade_s` that stay below the target (an erosion: the offset is gone when the gripper acts)."""
-    e = np.array([1.0 if lab in MOVING else 0.0 for lab in labels])
-    if len(e) == 0:
-        return e
-    e[0] = e[-1] = 0.0
-    slope = dt / max(fade_s, dt)
+def _erode(e: np.ndarray, slope: float) -> np.ndarray:
+    """In place: each value at most its neighbour's plus `slope`, so every fall to a low value is a ramp."""
     for k in range(1, len(e)):
         e[k] = min(e[k], e[k - 1] + slope)
     for k in range(len(e) - 2, -1, -1):
@@ -53,19 +47,26 @@ def envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
     return e
 
 
+def envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
+    """Per step in [0, 1]: 1 inside moving segments, 0 elsewhere and at both ends of the motion, with ramps of
+    `fade_s` that stay below the target (an erosion: the offset is gone when the gripper acts)."""
+    e = np.array([1.0 if lab in MOVING else 0.0 for lab in labels])
+    if len(e) == 0:
+        return e
+    e[0] = e[-1] = 0.0
+    return _erode(e, dt / max(fade_s, dt))
+
+
 def grasp_envelope(labels: list[str], dt: float, fade_s: float) -> np.ndarray:
     """Per step in [0, 1]: 1 while the gripper grasps, with ramps of `fade_s` out into the steps around it (a
     dilation: the offset is whole before the fingers close) and 0 at both ends of the motion."""
-    g = np.array([1.0 if lab == "grasp" else 0.0 for lab in labels])
+    g = np.array([0.0 if lab == "grasp" else 1.0 for lab in labels])
     if len(g) == 0:
         return g
     slope = dt / max(fade_s, dt)
-    for k in range(1, len(g)):
-        g[k] = max(g[k], g[k - 1] - slope)
-    for k in range(len(g) - 2, -1, -1):
-        g[k] = max(g[k], g[k + 1] - slope)
-    steps = np.arange(len(g))
-    return np.minimum(g, np.minimum(steps, steps[::-1]) * slope)
+    g = 1.0 - _erode(g, slope)  # the dilation of the grasp steps
+    g[0] = g[-1] = 0.0
+    return _erode(g, slope)
 
 
 def smooth_offsets(n: int, dt: float, sigma: float, tau_s: float, rng: np.random.Generator) -> np.ndarray:

@@ -15,7 +15,8 @@ An episode that ends in a protective stop also keeps its stop as `end`, so the t
 
 A target_not_placed episode also says where the named object was at the end (`target_end`): still "held",
 in a "wrong_bin", in the "goal" but not settled there, or "outside" every container (dropped on the way or let
-go beside its bin); "released" for a task without bins (stack, drawer_put); and `target_lets_go` counts the times the gripper stopped holding it (one for a clean place).
+go beside its bin); "released" for a task without bins (stack, drawer_put); and `target_lets_go` counts the
+times the gripper stopped holding it (one for a clean place).
 
 `closest_m` grades a no_grasp: how near the TCP came to the named object before it first held it. A blind
 policy that drives to the average target stays 10-20 cm away; one that sees closes to within a few cm and

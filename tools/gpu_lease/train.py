@@ -10,7 +10,6 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.getcwd())
-import policy.train  # noqa: E402
 from policy.train import train  # noqa: E402
 
 CONFIG = "policy/configs/demo_pick_place.toml"
@@ -32,16 +31,6 @@ def main() -> None:
     ov = {"batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
           "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
           **extra}
-    # with feature_cache both legs below would encode every frame: the frozen encoders give the same table twice
-    encode, memo = policy.train.image_feature_table, {}
-
-    def table_once(model, ds, copies, **kw):
-        key = (copies, kw.get("seed"), ds.num_frames)
-        if key not in memo:
-            memo[key] = encode(model, ds, copies, **kw)
-        return memo[key]
-
-    policy.train.image_feature_table = table_once
     # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
     probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
     train(data, CONFIG, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
