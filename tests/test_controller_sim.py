@@ -85,7 +85,7 @@ def test_tracks_a_20cm_line_at_10cm_per_s_within_a_few_mm(variant):
 
 
 def test_gripper_follows_the_channel_with_hysteresis():
-    rig, loop, p0, R = make()
+    rig, loop, p0, R = make(reopen_empty_grasp=False)  # the fingers close on air here
     t0 = rig.now_ns() * 1e-9
     rig.gripper.activate()
 
@@ -109,7 +109,7 @@ def test_gripper_follows_the_channel_with_hysteresis():
 
 def test_gripper_min_hold_keeps_a_grasp_through_a_chunk_that_flickers_open():
     for hold, reopened in ((0.0, True), (0.6, False)):
-        rig, loop, p0, R = make(gripper_min_hold=hold)
+        rig, loop, p0, R = make(gripper_min_hold=hold, reopen_empty_grasp=False)
         t0 = rig.now_ns() * 1e-9
         rig.gripper.activate()
         grip = lambda t: 0.9 if t0 + 0.2 <= t < t0 + 0.5 else 0.0  # noqa: E731  closed for 0.3 s only
@@ -121,6 +121,50 @@ def test_gripper_min_hold_keeps_a_grasp_through_a_chunk_that_flickers_open():
         assert targets[2] == (0.0 if reopened else 1.0)  # 0.6 s: 0.1-0.3 s after the flicker opened
         assert targets[-1] == 0.0  # the hold ends: it opens
         assert loop.grip.commands == 3
+
+
+def _hand_a_block_to_the_fingers(rig):
+    """One of the pick_place world's objects, made weightless (gravcomp) and teleported between the open
+    fingers, as a hand would hold it there."""
+    import mujoco
+
+    world = rig.world
+    m = world.model
+    jnt = next(j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE)
+    adr, dof, body = m.jnt_qposadr[jnt], m.jnt_dofadr[jnt], m.jnt_bodyid[jnt]
+    with rig.lock:
+        m.body_gravcomp[body] = 1.0
+        world.data.qpos[adr:adr + 3] = world.tcp_pose()[:3, 3]
+        world.data.qpos[adr + 3:adr + 7] = [1, 0, 0, 0]
+        world.data.qvel[dof:dof + 6] = 0
+        world.forward()
+
+
+@pytest.mark.parametrize("holding", [False, True])
+def test_a_close_on_nothing_is_reopened_and_the_policy_may_close_again(holding):
+    rig, loop, p0, R = make(reopen_hold=1.0)
+    rig.gripper.activate()
+    if holding:
+        _hand_a_block_to_the_fingers(rig)
+    t0 = rig.now_ns() * 1e-9
+    grip = lambda t: 0.9 if t >= t0 + 0.2 else 0.0  # noqa: E731  the policy says "closed" from 0.2 s on
+    targets = []
+    for _ in range(20):  # 4 s
+        assert loop.submit(chunk(rig.now_ns(), lambda t: p0, R, grip))
+        run(rig, loop, 100)
+        targets.append(rig.gripper.state().target)
+    events = [e for e in loop.drain_events() if e.kind == "gripper_empty_grasp"]
+    if holding:  # the fingers stop on the block: the close stands
+        assert rig.gripper.state().object_detected
+        assert targets[5:] == [1.0] * 15 and loop.grip.empty_closes == 0 and not events
+        return
+    # closed at 0.2 s, the fingers reach the end ~1.3 s later with nothing between them: opened, held open for
+    # reopen_hold though the policy still says closed, then closed again as it asks
+    first_open = next(k for k in range(5, 20) if targets[k] == 0.0)
+    assert 6 <= first_open <= 9, targets
+    assert targets[first_open + 3] == 0.0  # 0.6 s later: still held open (reopen_hold 1 s)
+    assert 1.0 in targets[first_open + 5:first_open + 8]  # the hold is over: the policy's close goes through
+    assert loop.grip.empty_closes >= 1 and events and "closed on nothing" in events[0].message
 
 
 def test_late_chunk_is_entered_part_way_without_a_jump():

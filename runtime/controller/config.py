@@ -49,6 +49,11 @@ class ControllerConfig:
     gripper_min_hold: float = field(default=0.0, metadata=spec(0.0, 5.0, "s", doc=(
         "after a close or open, ignore the opposite edge for this long: a grasp is not undone by one chunk "
         "that flickers open (the collector holds 0.6 s after closing)")))
+    reopen_empty_grasp: bool = field(default=True, metadata=spec(doc=(
+        "a close that the gripper reports caught nothing is undone: the fingers open and the policy may try "
+        "again (runtime/controller/gripper.py)")))
+    reopen_hold: float = field(default=2.0, metadata=spec(0.0, 10.0, "s", doc=(
+        "after an empty close, the policy's close is ignored until its channel reads open or this long")))
     gripper_speed: float = field(default=0.08, metadata=spec(0.0, 0.15, "m/s"))
     gripper_force: float = field(default=40.0, metadata=spec(0.0, 235.0, "N"))
     stop_timeout: float = field(default=2.0, metadata=spec(0.05, 30.0, "s", doc="stop(): give up after"))

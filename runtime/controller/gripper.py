@@ -5,6 +5,13 @@ forwarding every small change would restart the 2F-85's move (and its object det
 (`gripper_open_below` .. `gripper_close_above`) turns it into edges; only an edge sends a command, and only
 while the stop state allows motion (an e-stop or protective stop must not drop a held object).
 
+An empty close is undone (`reopen_empty_grasp`): when the gripper reports its fingers stopped at the closed
+end with nothing between them (the 2F-85's object detection, OBJ = 3), the fingers open and the policy's close
+is ignored for `reopen_hold` or until its channel reads open. Why: a policy distilled from grasps that worked
+has never seen an empty closed gripper; it carries one on to the bin and the episode is lost, where open
+fingers above the object are an approach it knows. The gripper is asked only every `CHECK_PERIOD_S` while
+a close stands unverified (the real driver's status is a socket round trip, too slow for every cycle).
+
 Units: the driver speaks normalised registers (position 0 open .. 1 closed, speed/force 0..1); safety's
 `limit_gripper` speaks metres, m/s and N. The 2F-85's ranges convert between them.
 """
@@ -16,6 +23,9 @@ from safety.gripper import limit_gripper
 STROKE_M = 0.085  # 2F-85 finger gap fully open
 SPEED_RANGE = (0.020, 0.150)  # m/s at normalised speed 0 and 1
 FORCE_RANGE = (20.0, 235.0)  # N at normalised force 0 and 1
+CHECK_PERIOD_S = 0.1  # how often an unverified close asks the gripper what it holds
+SETTLE_S = 0.2  # after a close edge, the fingers have not started to move yet: no verdict before this
+EMPTY_CLOSED = 0.9  # finger closure (0 open .. 1 closed) beyond which a stopped gripper holds nothing
 
 
 def _norm(x: float, lo: float, hi: float) -> float:
@@ -27,13 +37,29 @@ class GripperChannel:
         self.gripper, self.limits, self.cfg = gripper, limits, config
         self.closed: bool | None = None  # the commanded state; None until the first command
         self.commands = 0
+        self.empty_closes = 0  # closes undone because the fingers caught nothing
         self._edge_at = -float("inf")  # when the last command was sent
+        self._verified = False  # the standing close holds an object (no need to ask again)
+        self._next_check = 0.0
+        self._reopened_until: float | None = None  # the policy's close is ignored until then
 
     def update(self, value: float | None, now: float, allowed: bool, events) -> bool | None:
         """Feed the channel's value at this cycle; returns True/False (closed/open) when a command was sent."""
         if self.gripper is None or value is None or not allowed:
             return None
         cfg = self.cfg
+        if self._reopened_until is not None:
+            if value <= cfg.gripper_open_below or now >= self._reopened_until:
+                self._reopened_until = None  # the policy agrees, or has had its time to approach again
+            else:
+                value = 0.0
+        elif self.closed and cfg.reopen_empty_grasp and self._caught_nothing(now):
+            self.empty_closes += 1
+            self._reopened_until = now + cfg.reopen_hold
+            value = 0.0
+            if events is not None:
+                events.report("gripper_empty_grasp", now, message="the fingers closed on nothing: reopened, "
+                              f"the policy's close ignored for up to {cfg.reopen_hold:g} s")
         want = self.closed
         if value >= cfg.gripper_close_above:
             want = True
@@ -54,8 +80,19 @@ class GripperChannel:
                 self._edge_at = now
             self.closed = want
             self.commands += 1
+            self._verified = False
             return want
         return None
+
+    def _caught_nothing(self, now: float) -> bool:
+        """Whether the standing close has stopped with nothing between the fingers (asks the gripper at most
+        every CHECK_PERIOD_S, and not again once it reports an object: a slip later on is not caught)."""
+        if self._verified or now - self._edge_at < SETTLE_S or now < self._next_check:
+            return False
+        self._next_check = now + CHECK_PERIOD_S
+        s = self.gripper.state()
+        self._verified = s.object_detected
+        return not s.object_detected and not s.is_moving and s.position >= EMPTY_CLOSED
 
 
 __all__ = ["GripperChannel"]
