@@ -14,6 +14,8 @@ Why these defaults:
   smoothing (which adds lag) can be light.
 * gripper hysteresis 0.4 / 0.6: the policy's channel is a regressed 0..1 value that hovers near 0.5 while
   it is undecided; a band keeps the fingers from chattering.
+* `reopen_empty_grasp` on, `reopen_hold` 2 s: on 120 held-out heavy-DR seeds the shipped policy completed
+  78 pick-and-places with it against 64 without (14 gained, none lost); 2 s is about one approach.
 """
 
 from __future__ import annotations
