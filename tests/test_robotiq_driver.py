@@ -208,3 +208,33 @@ def test_no_server_is_a_connection_error():
     g = Robotiq2F85(RobotiqConfig("127.0.0.1", port=port, timeout=0.5))
     with pytest.raises(ConnectionError, match=rf"cannot connect to the Robotiq URCap server at 127.0.0.1:{port}"):
         g.state()
+
+
+@pytest.mark.parametrize("holding", [False, True])
+def test_the_controller_reopens_an_empty_close_over_the_real_protocol(server, gripper, holding):
+    """The controller's gripper channel (runtime.controller.gripper) on this driver: it reads the gOBJ verdict
+    over the socket and undoes a close on nothing; a close on an object stands."""
+    from runtime.controller import ControllerConfig
+    from runtime.controller.gripper import GripperChannel
+    from safety import default_limits
+    from safety.events import EventCoalescer
+
+    gripper.activate()
+    gripper.open(speed=1.0)
+    if holding:
+        server.place_object(100)
+    channel = GripperChannel(gripper, default_limits("ur5e"), ControllerConfig(reopen_hold=0.5))
+    events = EventCoalescer()
+    channel.update(0.0, 0.0, True, events)  # the first value sets the state (open)
+    t0 = time.monotonic()
+    sent = []
+    while time.monotonic() - t0 < 2.0:  # the policy says "closed" throughout, at ~100 Hz
+        r = channel.update(0.9, time.monotonic() - t0 + 0.01, True, events)
+        if r is not None:
+            sent.append(r)
+        time.sleep(0.01)
+    if holding:
+        assert sent == [True] and channel.empty_closes == 0 and gripper.state().object_detected
+    else:  # closed, found empty, opened, held open 0.5 s, closed again as the policy still asks, ...
+        assert sent[:3] == [True, False, True] and channel.empty_closes >= 1
+        assert "closed on nothing" in "".join(e.message for e in events.flush(10.0))
