@@ -11,7 +11,8 @@ home, where every episode starts), both cameras exactly as the recorder makes th
 the proprioception, the instruction, and the two points the policy's aux head regresses: where the episode
 would close the gripper and where it would open it. Those are the object's and the bin's positions plus
 offsets measured on recorded episodes (`measure_offsets`: median of the recorded grasp/release target minus
-the object/bin position), so the labels mean what the policy's own aux target means.
+the object/bin position), so the labels mean what the policy's own aux target means. Carrying views (the
+object held on its way to the bin, `carry`) are datagen/views_carry.py's.
 
 Shards of `SHARD` scenes are written as they finish (`views_<first seed>.npz`), so an interrupted run keeps
 what it made and a rerun skips the shards already there.
@@ -25,6 +26,7 @@ import numpy as np
 
 from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
+from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
@@ -90,8 +92,10 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
 
 
 def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout(), fidelity: str = "fast",
-                image_size: tuple[int, int] = IMAGE_SIZE) -> dict:
-    """`views` labelled views of the heavy-DR scene of `seed` (the same seed always gives the same views)."""
+                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0) -> dict:
+    """`views` labelled views of the heavy-DR scene of `seed` (the same seed always gives the same views), then
+    up to `carry` views with the object in the closed fingers on its way to the bin (datagen/views_carry.py;
+    none when the scene's grasp fails)."""
     ep = build_episode(TASK, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5])
@@ -116,6 +120,8 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             world.set_arm_target(q)
             world.forward()
             recorder.sample()
+        if carry:
+            _carry_views(ep, recorder, seed, carry, grasp, release, yaw, q_home)
         images, proprio = recorder.observations()
     finally:
         recorder.close()
@@ -125,8 +131,29 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n}
 
 
+def _carry_views(ep, recorder, seed: int, views: int, grasp, release, yaw: float, q_home) -> None:
+    rng = np.random.default_rng([int(seed), 0xCA77])  # its own stream: the approach views stay as they were
+    target = ep.instance.params["target"]
+    in_tcp = grasp_in_hand(ep.world, recorder.kin, target, grasp, yaw, q_home)
+    if in_tcp is None:
+        return
+    yaw = nearest_half_turn(yaw, float(np.arctan2(*recorder.kin.fk(ep.world.arm_q())[[1, 0], 0])))
+    q = ep.world.arm_q()
+    for _ in range(views):
+        for _attempt in range(5):
+            try:
+                q = recorder.kin.ik(carry_pose(grasp, release, yaw, rng), q)
+                break
+            except UnreachableError:
+                continue
+        else:
+            continue
+        place_carried(ep.world, recorder.kin, q, target, in_tcp)
+        recorder.sample()
+
+
 def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdout: Holdout = Holdout(),
-             progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE) -> list[Path]:
+             progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0) -> list[Path]:
     """Render views of every seed's scene into shards of SHARD scenes under out_dir; returns the shards."""
     from tqdm import tqdm
 
@@ -141,7 +168,7 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
         if not path.exists():
             parts = []
             for seed in chunk:
-                parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size))
+                parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry))
                 bar.update(1)
             merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "instruction"}
             merged["instruction"] = np.array([t for p in parts for t in p["instruction"]])
@@ -155,14 +182,18 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
     return shards
 
 
-def load(views_dir: str | Path, offsets: dict | None = None) -> dict:
-    """Every shard of a views directory, concatenated. With `offsets` (measure_offsets of the episodes a policy
+def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
+    """Every shard of a views directory (or of several), concatenated. With `offsets` (measure_offsets of the episodes a policy
     trains on), the labels are moved from the offsets each shard was rendered with to these: the images depend
     on the grasp point only through the sampled arm poses, so the same views serve data whose demonstrations
     release elsewhere (over a bin's rim instead of down in it)."""
-    paths = sorted(Path(views_dir).glob("views_*.npz"))
-    if not paths:
-        raise FileNotFoundError(f"{views_dir}: no views_*.npz shards (make them with datagen.views)")
+    dirs = [views_dir] if isinstance(views_dir, (str, Path)) else list(views_dir)
+    paths = []
+    for d in dirs:
+        found = sorted(Path(d).glob("views_*.npz"))
+        if not found:
+            raise FileNotFoundError(f"{d}: no views_*.npz shards (make them with `sudd views`)")
+        paths += found
     parts = [dict(np.load(p)) for p in paths]
     if offsets is not None:
         for p in parts:

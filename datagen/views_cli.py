@@ -19,10 +19,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "views", help="render labelled views of DR scenes for encoder pretraining (sudd pretrain)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example:\n  sudd views --out out/views --scenes 3000 --seed-offset 200000 --offsets-from out/data "
-               "--holdout-color purple")
+               "--holdout-color purple\n  sudd views --out out/views_carry --scenes 2000 --views 1 --carry-views 4 "
+               "--seed-offset 203000 --offsets-from out/data --holdout-color purple")
     v.add_argument("--out", type=Path, required=True, help="views directory (created; resumed if present)")
     v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
     v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
+    v.add_argument("--carry-views", type=int, default=0, metavar="N",
+                   help="also N views per scene with the named object held on its way to the bin (default 0; "
+                        "see datagen/views_carry.py)")
     v.add_argument("--seed-offset", type=int, default=200000,
                    help="first seed (default 200000); keep it away from training and evaluation seeds")
     v.add_argument("--offsets-from", type=Path, required=True, metavar="DATA",
@@ -40,13 +44,15 @@ def _views(args) -> int:
     from sim.config import load_config
     from sim.tasks import Holdout
 
-    if args.scenes < 1 or args.views < 1:
-        raise ValueError(f"--scenes and --views must be >= 1 (got {args.scenes}, {args.views})")
+    if args.scenes < 1 or args.views < 1 or args.carry_views < 0:
+        raise ValueError(f"--scenes and --views must be >= 1 and --carry-views >= 0 (got {args.scenes}, "
+                         f"{args.views}, {args.carry_views})")
     holdout = load_config(Holdout, {"colors": args.holdout_color, "shapes": args.holdout_shape})
     offsets = measure_offsets(args.offsets_from)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
-                      holdout)
+                      holdout, carry=args.carry_views)
     summary = {"out": str(args.out), "shards": len(shards), "scenes": args.scenes, "views_per_scene": args.views,
+               "carry_views_per_scene": args.carry_views,
                "offsets_m": {k: [round(float(x), 4) for x in offsets[k]] for k in ("grasp", "release")},
                "offsets_episodes": int(offsets["episodes"])}
     print(json.dumps(summary, indent=2) if args.json else

@@ -54,7 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                "policy/configs/demo_pick_place.toml --steps 3000\n"
                "  sudd train out/data --out runs/pp --config policy/configs/demo_pick_place.toml --steps 3000 "
                "--init-from runs/pre")
-    pre.add_argument("views", type=Path, help="views directory (sudd views --out)")
+    pre.add_argument("views", type=Path, nargs="+",
+                     help="views directories (sudd views --out), all used: e.g. approach and carrying views")
     pre.add_argument("--data", type=Path, required=True, help="the episode dataset the policy will train on")
     pre.add_argument("--out", type=Path, required=True, help="run directory (written afresh)")
     pre.add_argument("--config", default="small", help="the policy's preset or TOML file (default small)")

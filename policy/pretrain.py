@@ -44,7 +44,7 @@ from policy.warm_start import PRETRAINED
 class Views:
     """Rendered views as training batches (everything in memory, uint8 images)."""
 
-    def __init__(self, views_dir: str | Path, cfg: PolicyConfig, normalizer, embedder, offsets: dict | None = None):
+    def __init__(self, views_dir: str | Path | list, cfg: PolicyConfig, normalizer, embedder, offsets: dict | None = None):
         v = load_views(views_dir, offsets)
         if v["scene"].shape[1:3] != tuple(cfg.image_size):
             raise ValueError(f"{views_dir}: views are {v['scene'].shape[1:3]} pixels, the config expects "
@@ -79,7 +79,11 @@ class Views:
         return {"images": images, "proprio": proprio, "text": self.text[idx], "aux": self.aux[idx]}
 
 
-def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | PolicyConfig | dict,
+def _names(views_dir) -> str | list[str]:
+    return str(views_dir) if isinstance(views_dir, (str, Path)) else [str(d) for d in views_dir]
+
+
+def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | Path | PolicyConfig | dict,
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
              progress: bool = True, embedder=None, init_from: str | Path | None = None) -> dict:
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
@@ -132,7 +136,7 @@ def pretrain(views_dir: str | Path, data_dir: str | Path, config: str | Path | P
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     fit.normalizer.save(run_dir / "stats.npz")
     offsets_m = {k: np.round(offsets[k], 4).tolist() for k in ("grasp", "release")}
-    info = dict(fit.info(), pretrain={"views": str(views_dir), "view_count": len(views), "scenes": views.scenes,
+    info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
                                       "offsets_m": offsets_m})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:

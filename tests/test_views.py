@@ -133,3 +133,54 @@ def test_pretraining_goes_on_from_an_earlier_pretraining_run_only(views_dir, tmp
     with pytest.raises(ValueError, match="not a `sudd pretrain` run"):
         pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
                  embedder=hash_embedder, init_from=tmp_path / "pre")
+
+
+def test_carry_views_hold_the_named_object_on_its_way_to_the_bin():
+    from datagen.views_carry import grasp_in_hand, place_carried
+    from sim.kinematics import Kinematics
+    from datagen.recorder import TCP_OFFSET_Z
+
+    v = scene_views(300, 1, OFFSETS, image_size=SIZE, carry=3)
+    assert len(v["proprio"]) == 4  # home, then three carrying views
+    grasp = v["points"][0, 0]
+    fingers = v["proprio"][:, 9]
+    assert fingers[0] < 0.05 and np.all((fingers[1:] > 0.2) & (fingers[1:] < 0.9))  # closed on the object
+    assert v["proprio"][1:, 2].min() > grasp[2] - 0.05
+    np.testing.assert_array_equal(v["points"][1:], np.broadcast_to(v["points"][0], (3, 2, 3)))
+    # the held object moves with the gripper as one body, still between both pads
+    ep = build_episode("pick_place", 300, "heavy", "fast")
+    kin = Kinematics.with_tcp_z(ep.world.variant, TCP_OFFSET_Z)
+    target = ep.instance.params["target"]
+    q_home = ep.world.arm_q()
+    in_tcp = grasp_in_hand(ep.world, kin, target, grasp, 0.3, q_home)
+    assert in_tcp is not None
+    bin_above = StateView(ep.world).position(ep.instance.params["bin"]) + [0.0, 0.0, 0.15]
+    T = ep.world.tcp_pose().copy()
+    T[:3, 3] = bin_above
+    place_carried(ep.world, kin, kin.ik(T, ep.world.arm_q()), target, in_tcp)
+    state = StateView(ep.world)
+    assert np.linalg.norm(ep.world.tcp_pose()[:3, 3] - bin_above) < 1e-3
+    np.testing.assert_allclose(state.position(target), (ep.world.tcp_pose() @ in_tcp)[:3, 3], atol=1e-6)
+    assert state.holding(target)
+
+
+def test_carry_poses_follow_the_recorded_carry_from_above_the_grasp_to_above_the_bin():
+    from datagen.views_carry import LIFT_ABOVE_RELEASE, carry_pose
+
+    rng = np.random.default_rng(0)
+    grasp, release = np.array([0.1, 0.35, 0.03]), np.array([-0.2, 0.6, 0.13])
+    p = np.array([carry_pose(grasp, release, 0.4, rng)[:3, 3] for _ in range(600)])
+    assert p[:, 2].min() >= grasp[2] and p[:, 2].max() < release[2] + LIFT_ABOVE_RELEASE + 0.06
+    axis = (release - grasp)[:2] / np.linalg.norm((release - grasp)[:2])
+    t = (p[:, :2] - grasp[:2]) @ axis / np.linalg.norm((release - grasp)[:2])
+    off = np.abs((p[:, :2] - grasp[:2]) @ [-axis[1], axis[0]])
+    assert np.median(off) < 0.05 and (t < 0.2).mean() > 0.25 and (t > 0.8).mean() > 0.25
+
+
+def test_views_load_from_several_directories_and_name_an_empty_one(views_dir, tmp_path):
+    generate(tmp_path / "more", range(302, 303), 2, OFFSETS, progress=False, image_size=SIZE, carry=1)
+    both = load([views_dir, tmp_path / "more"])
+    assert sorted(set(both["seed"].tolist())) == [300, 301, 302] and len(both["proprio"]) == 6 + 3
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="empty: no views"):
+        load([views_dir, tmp_path / "empty"])
