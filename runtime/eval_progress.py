@@ -21,6 +21,11 @@ times the gripper stopped holding it (one for a clean place).
 `closest_m` grades a no_grasp: how near the TCP came to the named object before it first held it. A blind
 policy that drives to the average target stays 10-20 cm away; one that sees closes to within a few cm and
 misses by a finger's width. Success rates of 0 % cannot tell those apart.
+
+`closes` says how each close of the fingers before the named object was held missed it: the TCP's
+horizontal offset from the object and its yaw off the object's grasp yaw, modulo the turn that maps the
+object's footprint onto itself (a half turn for a bar, a quarter for a square block; none for a cylinder, whose
+yaw is None). A bar closed along its length is missed however near the TCP comes.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.state import StateView
+from sim.tasks.pick_place import grasp_yaw
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
 TARGET_ENDS = ("held", "outside", "wrong_bin", "goal", "released")
@@ -37,6 +43,14 @@ LIFT_M = 0.01
 def target_name(inst) -> str | None:
     """The object the command names (pick_place, drawer_put: target; stack: the one to put on top)."""
     return inst.params.get("target") or inst.params.get("top")
+
+
+def footprint_period(obj) -> float | None:
+    """The smallest turn about the vertical that maps the object's footprint onto itself; None for a round one."""
+    if obj.shape == "cylinder":
+        return None
+    sx, sy = obj.size[:2]
+    return np.pi / 2 if abs(sx - sy) <= 0.05 * max(sx, sy) else np.pi
 
 
 class GraspProgress:
@@ -50,6 +64,8 @@ class GraspProgress:
         self._holding_target = False
         self._view = None
         self._start_z: dict[str, float] = {}
+        self.closes: list[dict] = []  # {"off_cm", "yaw_off_deg"} at each close before the named object was held
+        self._closing = False
 
     def __call__(self, world, inst) -> None:
         if self._view is None:
@@ -63,9 +79,25 @@ class GraspProgress:
             if o.name == self.target:
                 self.target_lets_go += self._holding_target and not holding
                 self._holding_target = holding
+        closing = world.gripper_command() > 0.5
         if self.target is not None and self.target not in self.held:
             d = float(np.linalg.norm(world.tcp_pose()[:3, 3] - self._view.position(self.target)))
             self.closest_m = d if self.closest_m is None else min(self.closest_m, d)
+            if closing and not self._closing:
+                self.closes.append(self._miss(world, inst))
+        self._closing = closing
+
+    def _miss(self, world, inst) -> dict:
+        T = world.tcp_pose()
+        obj = inst.obj(self.target)
+        miss = {"off_cm": round(100 * float(np.linalg.norm(T[:2, 3] - self._view.position(self.target)[:2])), 1),
+                "yaw_off_deg": None}
+        period = footprint_period(obj)
+        if period is not None:
+            off = (float(np.arctan2(T[1, 0], T[0, 0])) - grasp_yaw(obj, self._view.rotation(self.target))
+                   + period / 2) % period - period / 2
+            miss["yaw_off_deg"] = round(float(np.degrees(off)), 1)
+        return miss
 
     def _holds(self, name: str) -> bool:
         return bool(self._view.holding(name) and self._view.position(name)[2] - self._start_z[name] >= LIFT_M)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, defaultdict
+from statistics import median
 from pathlib import Path
 
 Z95 = 1.959963984540054
@@ -51,11 +52,15 @@ def summarise(records: list[dict]) -> list[dict]:
         failures = Counter(r["failure"] for r in rs if r.get("failure"))
         ends = Counter(r["end"] for r in rs if not r["success"] and r.get("end"))
         near = sorted(r["closest_cm"] for r in rs if r.get("failure") == "no_grasp" and r.get("closest_cm") is not None)
+        turned = [[abs(c["yaw_off_deg"]) for c in r.get("closes", ()) if c.get("yaw_off_deg") is not None]
+                  for r in rs if r.get("failure") == "no_grasp"]
+        yaw = sorted(median(t) for t in turned if t)
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
                      "failures": dict(failures), "ends": dict(ends),
                      "no_grasp_closest_cm": near[len(near) // 2] if near else None,
+                     "no_grasp_close_yaw_off_deg": yaw[len(yaw) // 2] if yaw else None,
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end")))})
     return rows
 
@@ -82,12 +87,15 @@ def failure_table(rows: list[dict]) -> str:
         return ""
     ends = sorted({e for r in pol for e in r.get("ends", {})})
     lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends))
-             + " | no_grasp: median closest approach | target_not_placed: the object ended |",
-             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 2)]
+             + " | no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
+             "| target_not_placed: the object ended |",
+             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 3)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
         near = r.get("no_grasp_closest_cm")
         cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
         cells.append("-" if near is None else f"{near:.1f} cm")
+        yaw = r.get("no_grasp_close_yaw_off_deg")
+        cells.append("-" if yaw is None else f"{yaw:.0f} deg")
         where = r.get("target_ends", {})
         cells.append(", ".join(f"{e} {where[e]}" for e in TARGET_ENDS if where.get(e)) or "-")
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")

@@ -58,6 +58,7 @@ class EpisodeOutcome:
     held: list[str] = field(default_factory=list)  # objects the gripper held at some tick, first first
     failure: str = ""  # why it failed, one of runtime.eval_progress.FAILURES ("" on success)
     closest_cm: float | None = None  # nearest the TCP came to the named object before holding it
+    closes: list[dict] = field(default_factory=list)  # how each close before holding it missed (eval_progress)
     target_end: str = ""  # a failure that held the named object: where it ended (eval_progress.TARGET_ENDS)
     target_lets_go: int = 0  # times the gripper stopped holding the named object
 
@@ -147,6 +148,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     out.held = [inst.obj(n).phrase for n in progress.held]
     out.failure = progress.failure(out.success)
     out.closest_cm = None if progress.closest_m is None else round(100 * progress.closest_m, 1)
+    out.closes = progress.closes
     return out
 
 

@@ -178,7 +178,7 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
 
     z = {"obj0": 0.02, "obj1": 0.02}
     view = SimpleNamespace(holding=lambda name: name == "obj0", position=lambda name: np.array([0.0, 0.5, z[name]]))
-    world = SimpleNamespace(tcp_pose=lambda: np.eye(4))
+    world = SimpleNamespace(tcp_pose=lambda: np.eye(4), gripper_command=lambda: 0.0)
     bins = {"target": "obj0", "bin": "bin_left", "bins": [["left", 0.16], ["right", -0.16]]}
     inst = SimpleNamespace(params=bins, objects=[SimpleNamespace(name=n) for n in z])
     monkeypatch.setattr(eval_progress, "StateView", lambda w: view)
@@ -195,6 +195,44 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     view.inside = lambda obj, container: container == "bin_right"
     assert p.target_end(inst) == "wrong_bin"
     assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
+
+
+def test_each_close_before_the_grasp_says_how_far_off_and_how_turned_it_was(monkeypatch):
+    from types import SimpleNamespace
+
+    from runtime import eval_progress
+    from runtime.eval_progress import GraspProgress, footprint_period
+
+    lifted = {"obj0": False}
+    view = SimpleNamespace(holding=lambda name: lifted[name], rotation=lambda name: np.eye(3),  # a bar along x
+                           position=lambda name: np.array([0.0, 0.5, 0.02 + 0.05 * lifted[name]]))
+    cmd, yaw = [0.0], [0.0]
+
+    def tcp():
+        T = np.eye(4)
+        c, s = np.cos(yaw[0]), np.sin(yaw[0])
+        T[:2, :2], T[:3, 3] = [[c, -s], [s, c]], [0.03, 0.5, 0.05]
+        return T
+
+    world = SimpleNamespace(tcp_pose=tcp, gripper_command=lambda: cmd[0])
+    bar = SimpleNamespace(name="obj0", shape="bar", size=(0.045, 0.018, 0.018))
+    inst = SimpleNamespace(params={"target": "obj0"}, objects=[bar], obj=lambda name: bar)
+    monkeypatch.setattr(eval_progress, "StateView", lambda w: view)
+    p = GraspProgress()
+    for c, y in ((0.0, 0.0), (1.0, 0.0), (1.0, 0.0), (0.0, 0.0), (1.0, np.radians(80.0))):
+        cmd[0], yaw[0] = c, y
+        p(world, inst)
+    # closed along the bar (90 degrees off its grasp yaw, across it), then 10 degrees short of across
+    assert p.closes == [{"off_cm": 3.0, "yaw_off_deg": -90.0}, {"off_cm": 3.0, "yaw_off_deg": -10.0}]
+    lifted["obj0"] = True
+    for c in (0.0, 1.0):  # once the named object is held, a close is no miss
+        cmd[0] = c
+        p(world, inst)
+    assert len(p.closes) == 2 and p.held == ["obj0"]
+    # a square block looks the same a quarter turn on, a cylinder at any yaw
+    block = SimpleNamespace(shape="block", size=(0.022, 0.022, 0.022))
+    assert footprint_period(block) == pytest.approx(np.pi / 2) and footprint_period(bar) == pytest.approx(np.pi)
+    assert footprint_period(SimpleNamespace(shape="cylinder", size=(0.022, 0.024))) is None
 
 
 def test_paraphrases_are_phrasings_the_data_never_used():
@@ -230,7 +268,9 @@ def test_summary_table_and_chart(tmp_path):
     recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "target_not_placed", "end": "timeout", "target_end": e} for e in ("outside", "held", "outside")]
     recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
-              "failure": "no_grasp", "end": "timeout", "closest_cm": c} for c in (12.5, 3.0, 7.25)]
+              "failure": "no_grasp", "end": "timeout", "closest_cm": c, "closes": k}
+             for c, k in ((12.5, []), (3.0, [{"yaw_off_deg": y} for y in (-80.0, 88.0, 5.0, None)]),
+                          (7.25, [{"yaw_off_deg": 85.0}]))]
     rows = summarise(recs)
     assert [(r["suite"], r["who"], r["successes"], r["n"]) for r in rows] == [
         ("seen", "collector", 1, 4), ("seen", "policy", 3, 7), ("paraphrase", "policy", 0, 3)]
@@ -239,9 +279,10 @@ def test_summary_table_and_chart(tmp_path):
     assert "| paraphrase | pick_place | 0/3 = 0% [0, 56] | - | - |" in table
     why = failure_table(rows).splitlines()
     assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
-                      "| ended: timeout | no_grasp: median closest approach | target_not_placed: the object ended |")
-    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | held 1, outside 2 |",
-                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm | - |"]
+                      "| ended: timeout | no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
+                      "| target_not_placed: the object ended |")
+    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | - | held 1, outside 2 |",
+                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm | 85 deg | - |"]
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
