@@ -183,10 +183,10 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
 
 
 def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
-    """Every shard of a views directory (or of several), concatenated. With `offsets` (measure_offsets of the episodes a policy
-    trains on), the labels are moved from the offsets each shard was rendered with to these: the images depend
-    on the grasp point only through the sampled arm poses, so the same views serve data whose demonstrations
-    release elsewhere (over a bin's rim instead of down in it)."""
+    """Every shard of a views directory (or of several), concatenated. With `offsets` (measure_offsets of the
+    episodes a policy trains on), the labels are moved from the offsets each shard was rendered with to these:
+    the images depend on the grasp point only through the sampled arm poses, so the same views serve data
+    whose demonstrations release elsewhere (over a bin's rim instead of down in it)."""
     dirs = [views_dir] if isinstance(views_dir, (str, Path)) else list(views_dir)
     paths = []
     for d in dirs:

@@ -44,7 +44,8 @@ from policy.warm_start import PRETRAINED
 class Views:
     """Rendered views as training batches (everything in memory, uint8 images)."""
 
-    def __init__(self, views_dir: str | Path | list, cfg: PolicyConfig, normalizer, embedder, offsets: dict | None = None):
+    def __init__(self, views_dir: str | Path | list, cfg: PolicyConfig, normalizer, embedder,
+                 offsets: dict | None = None):
         v = load_views(views_dir, offsets)
         if v["scene"].shape[1:3] != tuple(cfg.image_size):
             raise ValueError(f"{views_dir}: views are {v['scene'].shape[1:3]} pixels, the config expects "
