@@ -136,7 +136,7 @@ def _eval(args) -> int:
         table += ("\n\nWhy the policy failed (no_grasp: held nothing; wrong_object: held only other objects; "
                   "target_not_placed: held the named object, no success; closest approach: how near the TCP came to "
                   "the named object in the no_grasp episodes; yaw off: the gripper's yaw from the named object's grasp "
-                  "yaw, modulo a half turn, when it closed):\n\n" + why)
+                  "yaw when it closed, modulo the object's symmetry):\n\n" + why)
     summary = {"settings": settings, "suites": suites, "tasks": tasks, "episodes": args.episodes,
                "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
                "bundle": bundle.info()}
