@@ -26,7 +26,7 @@ import numpy as np
 
 from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
-from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried
+from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
@@ -80,8 +80,8 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
     above = grasp + [0.0, 0.0, rng.uniform(0.0, 0.12)]
     p = home[:3, 3] + t * (above - home[:3, 3]) + rng.normal(0.0, [0.03, 0.03, 0.02])
     p[2] = max(p[2], grasp[2])
-    home_yaw = np.arctan2(home[1, 0], home[0, 0])
-    delta = (yaw - home_yaw + np.pi / 2) % np.pi - np.pi / 2  # the gripper is symmetric under a half turn
+    home_yaw = tool_yaw(home)
+    delta = nearest_half_turn(yaw, home_yaw) - home_yaw
     T = np.eye(4)
     turn = t * delta + rng.normal(0.0, 0.15)
     ax, ay = rng.normal(0.0, 0.05, 2)  # a little tilt
@@ -134,10 +134,10 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
 def _carry_views(ep, recorder, seed: int, views: int, grasp, release, yaw: float, q_home) -> None:
     rng = np.random.default_rng([int(seed), 0xCA77])  # its own stream: the approach views stay as they were
     target = ep.instance.params["target"]
+    yaw = nearest_half_turn(yaw, tool_yaw(recorder.kin.fk(q_home)))  # as the collector turns the wrist least
     in_tcp = grasp_in_hand(ep.world, recorder.kin, target, grasp, yaw, q_home)
     if in_tcp is None:
         return
-    yaw = nearest_half_turn(yaw, float(np.arctan2(*recorder.kin.fk(ep.world.arm_q())[[1, 0], 0])))
     q = ep.world.arm_q()
     for _ in range(views):
         for _attempt in range(5):

@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 
 from sim.kinematics import UnreachableError
+from sim.rotations import rotvec_to_matrix
 from sim.state import StateView
 from sim.tasks.scripted import top_down
 
@@ -51,10 +52,8 @@ def carry_pose(grasp: np.ndarray, release: np.ndarray, yaw: float, rng: np.rando
     p[:2] += rng.normal(0.0, noise, 2)
     p[2] = max(p[2] + rng.normal(0.0, 0.015), grasp[2])  # never the object through the table
     T = top_down(p, yaw + rng.normal(0.0, 0.1))
-    tilt = rng.normal(0.0, 0.05, 2)
-    cx, sx, cy, sy = np.cos(tilt[0]), np.sin(tilt[0]), np.cos(tilt[1]), np.sin(tilt[1])
-    T[:3, :3] = T[:3, :3] @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]]) @ np.array(
-        [[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    ax, ay = rng.normal(0.0, 0.05, 2)  # a little tilt, as the approach views have
+    T[:3, :3] = T[:3, :3] @ rotvec_to_matrix([ax, 0.0, 0.0]) @ rotvec_to_matrix([0.0, ay, 0.0])
     return T
 
 
@@ -74,11 +73,15 @@ def _pose_matrix(qpos7: np.ndarray) -> np.ndarray:
     return T
 
 
+def tool_yaw(T: np.ndarray) -> float:
+    """The yaw of a top-down TCP pose (its x axis, along which the fingers close, in the base frame)."""
+    return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
 def grasp_in_hand(world, kin, target: str, grasp: np.ndarray, yaw: float, q_home: np.ndarray):
-    """Close the fingers on `target` at the top-down grasp pose; returns the object's pose in the TCP frame
-    (4x4), or None when the grasp pose is unreachable or the pads do not both touch the object."""
-    home = kin.fk(q_home)
-    yaw = nearest_half_turn(yaw, float(np.arctan2(home[1, 0], home[0, 0])))
+    """Close the fingers on `target` at the top-down grasp pose of `yaw` (taken as given: pick the half turn
+    first); returns the object's pose in the TCP frame (4x4), or None when the grasp pose is unreachable or the
+    pads do not both touch the object."""
     try:
         q = kin.ik(top_down(grasp, yaw), q_home)
     except UnreachableError:
@@ -100,8 +103,8 @@ def place_carried(world, kin, q: np.ndarray, target: str, in_tcp: np.ndarray) ->
     world.set_arm_target(q)
     world.forward()
     T = world.tcp_pose() @ in_tcp
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, T[:3, :3].flatten())
-    world.data.qpos[_free_qpos(world, target)] = np.concatenate([T[:3, 3], quat])
+    free = _free_qpos(world, target)
+    world.data.qpos[free.start:free.start + 3] = T[:3, 3]
+    mujoco.mju_mat2Quat(world.data.qpos[free.start + 3:free.stop], T[:3, :3].flatten())
     world.data.qvel[:] = 0.0
     world.forward()
