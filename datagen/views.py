@@ -11,7 +11,8 @@ home, where every episode starts), both cameras exactly as the recorder makes th
 the proprioception, the instruction, and the two points the policy's aux head regresses: where the episode
 would close the gripper and where it would open it. Those are the object's and the bin's positions plus
 offsets measured on recorded episodes (`measure_offsets`: median of the recorded grasp/release target minus
-the object/bin position), so the labels mean what the policy's own aux target means. Carrying views (the
+the object/bin position), so the labels mean what the policy's own aux target means; with them the grasp yaw
+and the object's footprint period, for the grasp-axis label (policy/grasp_axis.py). Carrying views (the
 object held on its way to the bin, `carry`) are datagen/views_carry.py's.
 
 Shards of `SHARD` scenes are written as they finish (`views_<first seed>.npz`), so an interrupted run keeps
@@ -32,7 +33,7 @@ from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
 from sim.state import StateView
 from sim.tasks import Holdout
-from sim.tasks.pick_place import grasp_yaw
+from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 SHARD = 50
 TASK = "pick_place"
@@ -44,6 +45,11 @@ def _points(ep) -> tuple[np.ndarray, np.ndarray, float]:
     target = ep.instance.params["target"]
     yaw = grasp_yaw(ep.instance.obj(target), state.rotation(target))
     return state.position(target), state.position(ep.instance.params["bin"]), yaw
+
+
+def _period(ep) -> float:
+    """The named object's footprint period (0 for a round one): which grasp yaws are the same grasp."""
+    return footprint_period(ep.instance.obj(ep.instance.params["target"])) or 0.0
 
 
 def measure_offsets(dataset_dir: str | Path, episodes: int = 60) -> dict:
@@ -128,6 +134,7 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     n = len(proprio)
     return {"scene": images["scene"], "wrist": images["wrist"], "proprio": proprio,
             "points": np.tile(np.stack([grasp, release]).astype(np.float32), (n, 1, 1)),
+            "grasp_yaw": np.full(n, yaw, np.float32), "footprint_period": np.full(n, _period(ep), np.float32),
             "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n}
 
 
@@ -199,4 +206,5 @@ def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
         for p in parts:
             shift = np.stack([offsets["grasp"] - p["offset_grasp"], offsets["release"] - p["offset_release"]])
             p["points"] = (p["points"] + shift).astype(p["points"].dtype)
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if not k.startswith("offset_")}
+    keys = set.intersection(*(set(p) for p in parts))  # shards rendered before the grasp yaw was kept lack it
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k in keys and not k.startswith("offset_")}

@@ -169,7 +169,8 @@ def _pretrain(args) -> int:
           f"{summary['final_loss']:.4f}, held-out grasp error {val.get('val_grasp_cm', float('nan')):.1f} cm "
           f"({val.get('val_pregrasp_cm', float('nan')):.1f} cm before the grasp), release point "
           f"{val.get('val_release_cm', float('nan')):.1f} cm off while carrying; "
-          f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
+          + (f"grasp yaw {val['val_axis_deg']:.0f} deg off on bars; " if "val_axis_deg" in val else "")
+          + f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
     return 0
 
 

@@ -23,11 +23,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from datagen.schema import ACTION_DIM, CAMERAS, IMAGE_SIZE, PROPRIO_DIM
+from policy.grasp_axis import AXIS_DIM
 from sim.config import ConfigError, as_dict, load_config, spec
 
 PRESETS = ("small", "full")
 TEXT_DIM = 384  # all-MiniLM-L6-v2
-AUX_DIM = 6  # the aux head's grasp and release points
+AUX_DIM = 6  # the aux head's grasp and release points (two more with aux_grasp_axis: cfg.aux_dim)
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,10 @@ class PolicyConfig:
         "chunk is drawn towards where the images say the object is (needs aux_target_weight > 0); training "
         "feeds the true points plus aux_condition_noise, inference the head's prediction (exported in "
         "obs_encoder.onnx)")))
+    aux_grasp_axis: bool = field(default=False, metadata=spec(doc=(
+        "the aux head also regresses the grasp's axis relative to the gripper's yaw, (cos 2d, sin 2d), (0, 0) "
+        "for objects without one axis (policy/grasp_axis.py), so the encoder learns which way a bar lies; with "
+        "aux_condition the denoiser reads it too (needs aux_target_frame tcp; views rendered with grasp yaws)")))
     aux_condition_source: str = field(default="truth", metadata=spec(choices=("truth", "head"), doc=(
         "what training feeds the denoiser as the aux points: truth (the recorded points plus "
         "aux_condition_noise: teacher forcing, for a head still learning) or head (the head's own prediction, "
@@ -163,6 +168,10 @@ class PolicyConfig:
         if self.aux_condition and self.aux_target_weight <= 0:
             raise ConfigError("aux_condition needs aux_target_weight > 0 (the aux head that predicts the points "
                               "it feeds to the denoiser is trained only then)")
+        if self.aux_grasp_axis and (self.aux_target_weight <= 0 or self.aux_target_frame != "tcp"):
+            raise ConfigError(f"aux_grasp_axis needs aux_target_weight > 0 and aux_target_frame 'tcp' (got "
+                              f"{self.aux_target_weight}, {self.aux_target_frame!r}): the axis is relative to the "
+                              "gripper, like the tcp frame's points")
         if self.aux_condition_source == "head" and not self.aux_condition:
             raise ConfigError("aux_condition_source 'head' needs aux_condition = true (it says what the denoiser's "
                               "aux inputs are in training)")
@@ -189,9 +198,14 @@ class PolicyConfig:
     @property
     def global_cond_dim(self) -> int:
         """Per observation step: every camera's features + proprio features; the text feature once; last,
-        with aux_condition, the aux head's AUX_DIM points."""
+        with aux_condition, the aux head's aux_dim outputs."""
         per_step = len(self.cameras) * self.image_feature_dim + self.proprio_feature_dim
-        return self.obs_horizon * per_step + self.text_feature_dim + (AUX_DIM if self.aux_condition else 0)
+        return self.obs_horizon * per_step + self.text_feature_dim + (self.aux_dim if self.aux_condition else 0)
+
+    @property
+    def aux_dim(self) -> int:
+        """The aux head's outputs: the grasp and release points, then with aux_grasp_axis the axis label."""
+        return AUX_DIM + (AXIS_DIM if self.aux_grasp_axis else 0)
 
     def to_dict(self) -> dict:
         return as_dict(self)

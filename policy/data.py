@@ -48,6 +48,7 @@ from datagen.schema import (episode_success, grasp_and_release_per_step,  # noqa
 from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
 from policy.config import PolicyConfig
+from policy.grasp_axis import axis_label, episode_target_has_axis, yaw_of
 from policy.normalize import Normalizer
 
 
@@ -191,6 +192,9 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.release_step = [int(c[0, 1]) for c in self.cycle]
         if cfg.aux_target_frame == "tcp":
             self.aux_points = [a["action"][c, :3] for a, c in zip(low, self.cycle)]  # (T, 2, 3)
+        if cfg.aux_grasp_axis:  # per step: the yaw of the grasp it heads for; per episode: whether it has an axis
+            self.grasp_yaw = [yaw_of(a["action"][c[:, 0], 3:9]) for a, c in zip(low, self.cycle)]
+            self.has_axis = [episode_target_has_axis(self.store.meta(i)) for i in self.episodes]
         self.lengths = [len(a["action"]) for a in low]
         self._language(embedder)
         # no window whose chunk holds a step of an injected failure (datagen.schema.PERTURBED): the data shows
@@ -308,11 +312,16 @@ class PolicyDataset(torch.utils.data.Dataset):
         return self.grasp_step[k] <= s + self.cfg.obs_horizon - 1 < self.release_step[k]
 
     def aux_target(self, index: int) -> torch.Tensor:
-        """The sample's auxiliary target (6,) in the config's `aux_target_frame`, without reading images."""
+        """The sample's auxiliary target (cfg.aux_dim,) in the config's `aux_target_frame`, without reading
+        images: the grasp and release points, then with aux_grasp_axis the axis (policy.grasp_axis)."""
         k, s = self.index[index]
         now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
         if self.cfg.aux_target_frame == "tcp":
-            return relative_to_tcp(self.aux_points[k][now], self.tcp_pose[k][now])
+            points = relative_to_tcp(self.aux_points[k][now], self.tcp_pose[k][now])
+            if not self.cfg.aux_grasp_axis:
+                return points
+            axis = axis_label(self.grasp_yaw[k][now], yaw_of(self.tcp_pose[k][now, 3:9]), self.has_axis[k])
+            return torch.cat([points, torch.from_numpy(axis)])
         return grasp_and_release(self.action[k], tuple(self.cycle[k][now]))
 
     def info(self) -> dict:

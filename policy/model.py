@@ -10,7 +10,7 @@ Shapes (B batch, To obs horizon, Tp prediction horizon, Da action dim, Dp propri
 
 G = To * (cameras * image_feature_dim + proprio_feature_dim) + text_feature_dim: every observation step's
 features are concatenated (the model sees motion), the instruction once (it does not change within a window);
-with `aux_condition` (+ AUX_DIM) the aux head's grasp and release points close the vector: the object's
+with `aux_condition` (+ cfg.aux_dim) the aux head's grasp and release points (and grasp axis) close the vector: the object's
 location read out explicitly (grounding probe, stop 11: the image features place the named object better than
 the chunks followed it), which a "go there" denoiser uses more easily than 400-odd raw features.
 
@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policy.config import AUX_DIM, TEXT_DIM, PolicyConfig
+from policy.config import TEXT_DIM, PolicyConfig
 
 
 def _gn(ch: int) -> nn.GroupNorm:
@@ -266,7 +266,7 @@ class DiffusionPolicy(nn.Module):
         self.aux_head = None
         if cfg.aux_target_weight > 0:  # exported (in obs_encoder) only with aux_condition
             width = len(cfg.cameras) * cfg.image_feature_dim
-            self.aux_head = nn.Sequential(nn.Linear(width, 128), nn.Mish(), nn.Linear(128, AUX_DIM))
+            self.aux_head = nn.Sequential(nn.Linear(width, 128), nn.Mish(), nn.Linear(128, cfg.aux_dim))
         ab = torch.tensor(alphas_cumprod(cfg.num_train_timesteps, cfg.beta_schedule), dtype=torch.float32)
         self.register_buffer("alphas_cumprod", ab, persistent=False)
 
@@ -282,7 +282,7 @@ class DiffusionPolicy(nn.Module):
         return torch.cat([self.shown_features(features), self.aux_points(features)], dim=1)
 
     def aux_points(self, features: torch.Tensor) -> torch.Tensor:
-        """The aux head's grasp and release points (B, AUX_DIM) from the obs encoder's features (not from a
+        """The aux head's grasp and release points, then any grasp axis (B, cfg.aux_dim), from the obs encoder's features (not from a
         cond, whose image features image_cond_dropout may have hidden)."""
         return self.aux_head(self.image_features(features))
 
@@ -294,10 +294,10 @@ class DiffusionPolicy(nn.Module):
         """MSE of the denoiser's prediction (`denoise_target`) plus, with an aux head, of its points.
 
         batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
-        (all normalized), aux (B, 6) (only with aux_target_weight, see policy.data.grasp_and_release);
+        (all normalized), aux (B, cfg.aux_dim) (only with aux_target_weight, see policy.data.grasp_and_release);
         instead of images, image_features (B, To, cameras x image_feature_dim) (policy.feature_cache);
         noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
-        aux_noise (B, 6) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
+        aux_noise (B, cfg.aux_dim) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
         aux_condition_noise times this (teacher forcing: it learns to follow the points from the first step,
         while the head's own predictions are still poor); None = the true points. With aux_condition_source
         "head" it is conditioned on the head's detached prediction instead, as at inference.

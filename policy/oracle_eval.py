@@ -68,7 +68,8 @@ class OracleAuxPolicy:
         return np.asarray(self._embedder([text]), np.float32)[0]
 
     def cond(self, images: dict, proprio: np.ndarray, text_embedding: np.ndarray):
-        """The denoiser's global cond (1, G) with its last AUX_DIM entries the true points."""
+        """The denoiser's global cond (1, G) with the aux head's points replaced by the true ones (a grasp axis
+        after them stays the head's)."""
         import torch
 
         from policy.data import relative_to_tcp
@@ -80,7 +81,8 @@ class OracleAuxPolicy:
                     for c in cfg.cameras}
             p = torch.from_numpy(self.normalizer.normalize_proprio(proprio))[None]
             cond = self.model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
-        cond[0, -6:] = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
+        start = cond.shape[1] - cfg.aux_dim
+        cond[0, start:start + 6] = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
         return cond
 
     def act(self, images, proprio, text_embedding, noise=None, rng=None) -> np.ndarray:

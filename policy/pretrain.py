@@ -9,8 +9,8 @@ A view is one instant, while the policy sees To observation steps: each view fil
 rest, as at an episode's first step). Labels are the aux target of policy.data in the "tcp" frame (the
 grasp and release points relative to the gripper, over AUX_TCP_SCALE), relabelled with the grasp and release
 offsets measured on --data (datagen.views.load), so one set of views serves datasets whose demonstrations
-grasp or release differently. Augmentation is the policy's: one random crop per camera and sample, colour
-jitter.
+grasp or release differently; with aux_grasp_axis the grasp-axis label follows them (policy/grasp_axis.py).
+Augmentation is the policy's: one random crop per camera and sample, colour jitter.
 
 The run directory is an ordinary one (config.json, stats.npz fitted on the episode dataset exactly as
 training would fit it, dataset.json, checkpoints/, metrics.jsonl and metrics.png). With `val_fraction` > 0
@@ -32,6 +32,7 @@ from datagen.views import load as load_views
 from datagen.views import measure_offsets
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, color_jitter, crop, jitter_factors, relative_to_tcp
+from policy.grasp_axis import axis_label, period_has_axis, yaw_of
 from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
 from policy.ema import EMA
@@ -54,6 +55,12 @@ class Views:
         self.images = {c: v[c] for c in cfg.cameras}
         self.proprio = torch.from_numpy(normalizer.normalize_proprio(v["proprio"]).astype(np.float32))
         self.aux = torch.stack([relative_to_tcp(p, row) for p, row in zip(v["points"], v["proprio"])])
+        if cfg.aux_grasp_axis:
+            if "grasp_yaw" not in v:
+                raise ValueError(f"{views_dir}: aux_grasp_axis needs views that keep the grasp yaw, and (some of) "
+                                 "these shards were rendered before it was kept; render them again with `sudd views`")
+            axis = axis_label(v["grasp_yaw"], yaw_of(v["proprio"][:, 3:9]), period_has_axis(v["footprint_period"]))
+            self.aux = torch.cat([self.aux, torch.from_numpy(axis)], dim=1)
         texts = sorted(set(v["instruction"].tolist()))
         table = torch.from_numpy(np.asarray(embedder(texts), np.float32))
         row = {t: k for k, t in enumerate(texts)}

@@ -34,12 +34,12 @@ def synthetic_dataset(root: str | Path, episodes: int = 6, tasks: tuple[str, ...
             for seed in range(episodes):
                 ep = synthetic_episode(task, seed, steps=steps, size=size)
                 if smooth:
-                    _smooth(ep, seed)
+                    smooth_episode(ep, seed)
                 w.append(ep)
     return Path(root)
 
 
-def _smooth(ep, seed: int) -> None:
+def smooth_episode(ep, seed: int) -> None:
     T = len(ep)
     s = np.linspace(0.0, 1.0, T)[:, None]
     start = np.array([0.3 + 0.02 * (seed % 5), -0.2, 0.25])

@@ -35,7 +35,7 @@ from torch.utils.data._utils.collate import default_collate
 
 from policy import warm_start
 from policy.ema import EMA
-from policy.config import AUX_DIM, PolicyConfig, config_from_dict, load_policy_config
+from policy.config import PolicyConfig, config_from_dict, load_policy_config
 from policy.data import PolicyDataset, finish_images, to_device
 from policy.feature_cache import image_feature_table
 from policy.model import DiffusionPolicy, count_params
@@ -251,7 +251,7 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             g = torch.Generator().manual_seed(step_seed(cfg.seed, k, rank, 1))
             noise = torch.randn(batch["action"].shape, generator=g).to(dev)
             t = torch.randint(0, cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(dev)
-            aux_noise = torch.randn(noise.shape[0], AUX_DIM, generator=g).to(dev) if cfg.aux_condition else None
+            aux_noise = torch.randn(noise.shape[0], cfg.aux_dim, generator=g).to(dev) if cfg.aux_condition else None
             keep = None
             if cfg.image_cond_dropout > 0:
                 keep = (torch.rand(noise.shape[0], generator=g) >= cfg.image_cond_dropout).float().to(dev)

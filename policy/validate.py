@@ -16,6 +16,8 @@ centre crops:
             the grasp the object rides in the fingers and the point it was taken from is not in the images
   release_cm  median error of the aux head's release point over the samples observed while the object is
             carried, before the gripper opens: how well the policy sees where to let go
+  axis_deg  with aux_grasp_axis: median error of the head's grasp yaw (degrees, 0-90) over the samples observed
+            before the grasp of an object with a grasp axis (a bar): does it see which way the bar lies
 
 each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples), and
 guess_grasp_cm: the error of always answering the training samples' mean grasp point, the scale against
@@ -29,6 +31,7 @@ import torch
 from torch.utils.data import default_collate
 
 from policy.data import AUX_TCP_SCALE, PolicyDataset, finish_images, to_device
+from policy.grasp_axis import angle_error_deg
 
 
 class Validator:
@@ -52,7 +55,7 @@ class Validator:
         out = {}
         for name, (ds, idx) in self.sets.items():
             g = torch.Generator().manual_seed(self.seed)
-            losses, errors, chunk = [], [], []
+            losses, errors, chunk, axis = [], [], [], []
             before = np.array([ds.before_grasp(int(i)) for i in idx])
             carrying = np.array([ds.carrying(int(i)) for i in idx])
             for lo in range(0, len(idx), self.batch):
@@ -71,6 +74,9 @@ class Validator:
                     want = batch["aux"][:, :6].cpu().numpy()
                     errors.append(np.stack([self._metres(pred[:, j:j + 3]) - self._metres(want[:, j:j + 3])
                                             for j in (0, 3)], axis=1))
+                    if model.cfg.aux_grasp_axis:
+                        axis.append((model.aux_points(features)[:, 6:8].float().cpu().numpy(),
+                                     batch["aux"][:, 6:8].cpu().numpy()))
             out[f"{name}_loss"] = float(torch.cat(losses).mean())
             if chunk:
                 out[f"{name}_chunk_cm"] = float(np.median(np.concatenate(chunk)))
@@ -82,6 +88,11 @@ class Validator:
                 if carrying.any():
                     out[f"{name}_release_cm"] = float(np.median(miss[carrying, 1]))
                 out["guess_grasp_cm"] = self.guess_cm
+            if axis:
+                pred, want = (np.concatenate(a) for a in zip(*axis))
+                bar = before & (np.linalg.norm(want, axis=1) > 0.5)
+                if bar.any():
+                    out[f"{name}_axis_deg"] = float(np.median(angle_error_deg(pred[bar], want[bar])))
         model.train(was_training)
         return out
 

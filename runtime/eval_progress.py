@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.state import StateView
-from sim.tasks.pick_place import grasp_yaw
+from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
 TARGET_ENDS = ("held", "outside", "wrong_bin", "goal", "released")
@@ -43,14 +43,6 @@ LIFT_M = 0.01
 def target_name(inst) -> str | None:
     """The object the command names (pick_place, drawer_put: target; stack: the one to put on top)."""
     return inst.params.get("target") or inst.params.get("top")
-
-
-def footprint_period(obj) -> float | None:
-    """The smallest turn about the vertical that maps the object's footprint onto itself; None for a round one."""
-    if obj.shape == "cylinder":
-        return None
-    sx, sy = obj.size[:2]
-    return np.pi / 2 if abs(sx - sy) <= 0.05 * max(sx, sy) else np.pi
 
 
 class GraspProgress:

@@ -201,7 +201,8 @@ def test_each_close_before_the_grasp_says_how_far_off_and_how_turned_it_was(monk
     from types import SimpleNamespace
 
     from runtime import eval_progress
-    from runtime.eval_progress import GraspProgress, footprint_period
+    from runtime.eval_progress import GraspProgress
+    from sim.tasks.pick_place import footprint_period
 
     lifted = {"obj0": False}
     view = SimpleNamespace(holding=lambda name: lifted[name], rotation=lambda name: np.eye(3),  # a bar along x

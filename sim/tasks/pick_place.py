@@ -26,6 +26,14 @@ def grasp_yaw(o, rotation) -> float:
     return yaw + (np.pi / 2 if o.shape == "bar" else 0.0)
 
 
+def footprint_period(obj) -> float | None:
+    """The smallest turn about the vertical that maps the object's footprint onto itself; None for a round one."""
+    if obj.shape == "cylinder":
+        return None
+    sx, sy = obj.size[:2]
+    return np.pi / 2 if abs(sx - sy) <= 0.05 * max(sx, sy) else np.pi
+
+
 class PickPlace(TaskFamily):
     name = "pick_place"
     description = "Pick one object among distractors and put it in the named bin."
