@@ -17,7 +17,9 @@ centre crops:
   release_cm  median error of the aux head's release point over the samples observed while the object is
             carried, before the gripper opens: how well the policy sees where to let go
   axis_deg  with aux_grasp_axis: median error of the head's grasp yaw (degrees, 0-90) over the samples observed
-            before the grasp of an object with a grasp axis (a bar): does it see which way the bar lies
+            before the grasp of an object with a grasp axis (a bar) while the gripper is still UNALIGNED_DEG or
+            more off it: does it see which way the bar lies (nearer, the label is about "no turn", and a head
+            that always says so would score well); guess_axis_deg: that head's error on the same samples
 
 each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples), and
 guess_grasp_cm: the error of always answering the training samples' mean grasp point, the scale against
@@ -32,6 +34,9 @@ from torch.utils.data import default_collate
 
 from policy.data import AUX_TCP_SCALE, PolicyDataset, finish_images, to_device
 from policy.grasp_axis import angle_error_deg
+
+
+UNALIGNED_DEG = 20.0
 
 
 class Validator:
@@ -90,9 +95,12 @@ class Validator:
                 out["guess_grasp_cm"] = self.guess_cm
             if axis:
                 pred, want = (np.concatenate(a) for a in zip(*axis))
-                bar = before & (np.linalg.norm(want, axis=1) > 0.5)
+                unaligned = want[:, 0] < np.cos(np.radians(2 * UNALIGNED_DEG))  # |2d| >= 2 UNALIGNED_DEG
+                bar = before & (np.linalg.norm(want, axis=1) > 0.5) & unaligned
                 if bar.any():
                     out[f"{name}_axis_deg"] = float(np.median(angle_error_deg(pred[bar], want[bar])))
+                    if name == "val":
+                        out["guess_axis_deg"] = float(np.median(angle_error_deg(np.array([[1.0, 0.0]]), want[bar])))
         model.train(was_training)
         return out
 

@@ -142,3 +142,24 @@ def test_views_keep_the_grasp_yaw_and_pretraining_labels_the_axis(axis_data, tmp
     np.savez(old / "views_00000300.npz", **{k: x for k, x in shard.items() if k not in ("grasp_yaw",)})
     with pytest.raises(ValueError, match="rendered before it was kept"):
         Views(old, cfg, norm, hash_embedder)
+
+
+def test_validation_reports_the_axis_error_where_the_gripper_is_still_turned_off(axis_data):
+    from policy.data import PolicyDataset
+    from policy.model import DiffusionPolicy
+    from policy.validate import Validator
+
+    root, turns = axis_data
+    cfg = load_policy_config(TINY, AXIS)
+    ds = PolicyDataset(root, cfg, train=False, embedder=hash_embedder)
+    model = DiffusionPolicy(cfg)
+    with torch.no_grad():  # a head that always answers "no turn": off by exactly the TCP's turn
+        model.aux_head[2].weight.zero_()
+        model.aux_head[2].bias.copy_(torch.tensor([0, 0, 0, 0, 0, 0, 1.0, 0]))
+    out = Validator(ds, ds, chunks=False)(model, "cpu")
+    bars = np.degrees(np.abs(turns[:2]))  # both bar episodes are turned 20 degrees or more off; the cylinder's
+    assert min(abs(out["val_axis_deg"] - b) for b in (*bars, bars.mean())) < 1e-3  # label is (0, 0): left out
+    assert out["guess_axis_deg"] == pytest.approx(out["val_axis_deg"], abs=1e-3)
+    plain = load_policy_config(TINY, {**AXIS, "aux_grasp_axis": False})
+    ds = PolicyDataset(root, plain, train=False, embedder=hash_embedder)
+    assert "val_axis_deg" not in Validator(ds, ds, chunks=False)(DiffusionPolicy(plain), "cpu")
