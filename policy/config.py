@@ -23,12 +23,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from datagen.schema import ACTION_DIM, CAMERAS, IMAGE_SIZE, PROPRIO_DIM
-from policy.grasp_axis import AXIS_DIM
 from sim.config import ConfigError, as_dict, load_config, spec
 
 PRESETS = ("small", "full")
 TEXT_DIM = 384  # all-MiniLM-L6-v2
-AUX_DIM = 6  # the aux head's grasp and release points (two more with aux_grasp_axis: cfg.aux_dim)
+AUX_DIM = 6  # the aux head's grasp and release points
+AXIS_DIM = 2  # with aux_grasp_axis: the grasp axis after them (policy/grasp_axis.py)
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,6 @@ import numpy as np
 
 from sim.tasks.pick_place import footprint_period
 
-AXIS_DIM = 2
-
 
 def yaw_of(rot6d: np.ndarray) -> np.ndarray:
     """(..., 6) rot6d of a top-down pose -> (...,) the yaw of its x axis, along which the fingers close."""

@@ -13,6 +13,7 @@ from datagen.store import ShardWriter
 from datagen.workers import synthetic_episode
 from policy.config import load_policy_config
 from policy.grasp_axis import angle_error_deg, axis_label, episode_target_has_axis, has_axis
+from policy.normalize import Normalizer
 from policy.testing import TINY, hash_embedder, smooth_episode
 from sim.config import ConfigError
 
@@ -112,8 +113,6 @@ def test_views_keep_the_grasp_yaw_and_pretraining_labels_the_axis(axis_data, tmp
         np.testing.assert_allclose(v["footprint_period"][rows], footprint_period(o) or 0.0)
     root, _ = axis_data
     cfg = load_policy_config(TINY, AXIS)
-    from policy.normalize import Normalizer
-
     norm = Normalizer.fit(v["proprio"], np.zeros((4, cfg.action_dim), np.float32))
     aux = Views(views, cfg, norm, hash_embedder).aux.numpy()
     tcp_yaw = np.arctan2(v["proprio"][:, 4], v["proprio"][:, 3])
