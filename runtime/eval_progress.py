@@ -26,6 +26,11 @@ misses by a finger's width. Success rates of 0 % cannot tell those apart.
 horizontal offset from the object and its yaw off the object's grasp yaw, modulo the turn that maps the
 object's footprint onto itself (a half turn for a bar, a quarter for a square block; none for a cylinder, whose
 yaw is None). A bar closed along its length is missed however near the TCP comes.
+
+`releases` says where the named object was each time the fingers stopped holding it, for a task with a goal
+bin: its offset from the bin's centre (x, y, in the world frame) and its height over where it started. A place
+that misses by a few centimetres beside the bin reads apart from a drop on the way (tens of centimetres) and
+from a release too high; the sign of the offsets shows a bias to one side.
 """
 
 from __future__ import annotations
@@ -57,6 +62,7 @@ class GraspProgress:
         self._view = None
         self._start_z: dict[str, float] = {}
         self.closes: list[dict] = []  # {"off_cm", "yaw_off_deg"} at each close before the named object was held
+        self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "up_cm"} at each let-go of the named object
         self._closing = False
 
     def __call__(self, world, inst) -> None:
@@ -69,7 +75,9 @@ class GraspProgress:
             if o.name not in self.held and holding:
                 self.held.append(o.name)
             if o.name == self.target:
-                self.target_lets_go += self._holding_target and not holding
+                if self._holding_target and not holding:
+                    self.target_lets_go += 1
+                    self._release(inst)
                 self._holding_target = holding
         closing = world.gripper_command() > 0.5
         if self.target is not None and self.target not in self.held:
@@ -90,6 +98,15 @@ class GraspProgress:
                    + period / 2) % period - period / 2
             miss["yaw_off_deg"] = round(float(np.degrees(off)), 1)
         return miss
+
+    def _release(self, inst) -> None:
+        goal = inst.params.get("bin")
+        if not goal:
+            return
+        at = self._view.position(self.target)
+        dx, dy = (at[:2] - self._view.position(goal)[:2]) * 100
+        self.releases.append({"dx_cm": round(float(dx), 1), "dy_cm": round(float(dy), 1),
+                              "up_cm": round(100 * float(at[2] - self._start_z[self.target]), 1)})
 
     def _holds(self, name: str) -> bool:
         return bool(self._view.holding(name) and self._view.position(name)[2] - self._start_z[name] >= LIFT_M)

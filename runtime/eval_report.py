@@ -55,14 +55,24 @@ def summarise(records: list[dict]) -> list[dict]:
         turned = [[abs(c["yaw_off_deg"]) for c in r.get("closes", ()) if c.get("yaw_off_deg") is not None]
                   for r in rs if r.get("failure") == "no_grasp"]
         yaw = sorted(median(t) for t in turned if t)
+        placed, missed = ([_last_release_cm(r) for r in rs if r.get("releases") and pick(r)]
+                          for pick in (lambda r: r["success"], lambda r: r.get("failure") == "target_not_placed"))
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
                      "failures": dict(failures), "ends": dict(ends),
                      "no_grasp_closest_cm": near[len(near) // 2] if near else None,
                      "no_grasp_close_yaw_off_deg": yaw[len(yaw) // 2] if yaw else None,
+                     "release_off_cm": {"success": median(placed) if placed else None,
+                                        "target_not_placed": median(missed) if missed else None},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end")))})
     return rows
+
+
+def _last_release_cm(record: dict) -> float:
+    """How far (horizontally) from the goal bin's centre the named object last left the fingers."""
+    last = record["releases"][-1]
+    return math.hypot(last["dx_cm"], last["dy_cm"])
 
 
 def markdown_table(rows: list[dict]) -> str:
@@ -88,8 +98,8 @@ def failure_table(rows: list[dict]) -> str:
     ends = sorted({e for r in pol for e in r.get("ends", {})})
     lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends))
              + " | no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
-             "| target_not_placed: the object ended |",
-             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 3)]
+             "| target_not_placed: the object ended | target_not_placed: let go off the goal's centre (median) |",
+             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 4)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
         near = r.get("no_grasp_closest_cm")
         cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
@@ -98,6 +108,8 @@ def failure_table(rows: list[dict]) -> str:
         cells.append("-" if yaw is None else f"{yaw:.0f} deg")
         where = r.get("target_ends", {})
         cells.append(", ".join(f"{e} {where[e]}" for e in TARGET_ENDS if where.get(e)) or "-")
+        off = (r.get("release_off_cm") or {}).get("target_not_placed")
+        cells.append("-" if off is None else f"{off:.1f} cm")
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -61,6 +61,7 @@ class EpisodeOutcome:
     closes: list[dict] = field(default_factory=list)  # how each close before holding it missed (eval_progress)
     target_end: str = ""  # a failure that held the named object: where it ended (eval_progress.TARGET_ENDS)
     target_lets_go: int = 0  # times the gripper stopped holding the named object
+    releases: list[dict] = field(default_factory=list)  # where it was at each let-go, off the goal (eval_progress)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -149,6 +150,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     out.failure = progress.failure(out.success)
     out.closest_cm = None if progress.closest_m is None else round(100 * progress.closest_m, 1)
     out.closes = progress.closes
+    out.releases = progress.releases
     return out
 
 

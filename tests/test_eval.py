@@ -60,6 +60,8 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert out.target["color"] and out.target["shape"]
     assert out.held == [f"{out.target['color']} {out.target['shape']}"] and out.failure == ""
     assert out.target_end == "" and out.target_lets_go == 1  # let go once: in its bin
+    (release,) = out.releases  # over the bin's middle, a few cm up
+    assert np.hypot(release["dx_cm"], release["dy_cm"]) < 3.0 and 0.0 < release["up_cm"] < 15.0, release
 
 
 @pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
@@ -75,7 +77,9 @@ def test_a_failure_says_where_the_named_object_ended(collected, change, where):
         actions[(grasp + release) // 2:, 9] = grip[release]
     out = run_policy_episode(Replay(actions), "pick_place", SEED, dr="heavy", time_limit_factor=0.6)
     assert out.failure == "target_not_placed" and out.target_end == where, out.record()
-    assert out.target_lets_go == (where != "held")
+    assert out.target_lets_go == len(out.releases) == (where != "held")
+    if out.releases:  # dropped on the way to the bin, far outside the bin's 13 x 15 cm
+        assert np.hypot(out.releases[0]["dx_cm"], out.releases[0]["dy_cm"]) > 10.0, out.releases
     assert json.loads(json.dumps(out.record()))["target_end"] == where  # plain Python types: results.jsonl
 
 
@@ -177,7 +181,9 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     from runtime.eval_progress import LIFT_M, GraspProgress
 
     z = {"obj0": 0.02, "obj1": 0.02}
-    view = SimpleNamespace(holding=lambda name: name == "obj0", position=lambda name: np.array([0.0, 0.5, z[name]]))
+    bin_at = {"bin_left": np.array([0.16, 0.64, 0.0]), "bin_right": np.array([-0.16, 0.64, 0.0])}
+    view = SimpleNamespace(holding=lambda name: name == "obj0",
+                           position=lambda name: bin_at[name] if name in bin_at else np.array([0.0, 0.5, z[name]]))
     world = SimpleNamespace(tcp_pose=lambda: np.eye(4), gripper_command=lambda: 0.0)
     bins = {"target": "obj0", "bin": "bin_left", "bins": [["left", 0.16], ["right", -0.16]]}
     inst = SimpleNamespace(params=bins, objects=[SimpleNamespace(name=n) for n in z])
@@ -192,6 +198,7 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     view.inside = lambda obj, container: False
     p(world, inst)
     assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
+    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "up_cm": 1.5}]  # where it left the fingers, off bin_left
     view.inside = lambda obj, container: container == "bin_right"
     assert p.target_end(inst) == "wrong_bin"
     assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
@@ -267,7 +274,10 @@ def test_summary_table_and_chart(tmp_path):
              for s in (True, False, False, False)]
     recs[3].update(failure="wrong_object", end="protective_stop", closest_cm=1.0)  # held: not a no_grasp
     recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
-              "failure": "target_not_placed", "end": "timeout", "target_end": e} for e in ("outside", "held", "outside")]
+              "failure": "target_not_placed", "end": "timeout", "target_end": e, "releases": let_go}
+             for e, let_go in (("outside", [{"dx_cm": 30.0, "dy_cm": 0.0}, {"dx_cm": 6.0, "dy_cm": 8.0}]),
+                               ("held", []), ("outside", [{"dx_cm": 0.0, "dy_cm": -20.0}]))]
+    recs[0]["releases"] = [{"dx_cm": 1.0, "dy_cm": 0.0, "up_cm": 4.0}]
     recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "no_grasp", "end": "timeout", "closest_cm": c, "closes": k}
              for c, k in ((12.5, []), (3.0, [{"yaw_off_deg": y} for y in (-80.0, 88.0, 5.0, None)]),
@@ -281,9 +291,11 @@ def test_summary_table_and_chart(tmp_path):
     why = failure_table(rows).splitlines()
     assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
                       "| ended: timeout | no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
-                      "| target_not_placed: the object ended |")
-    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | - | held 1, outside 2 |",
-                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm | 85 deg | - |"]
+                      "| target_not_placed: the object ended | target_not_placed: let go off the goal's centre (median) |")
+    # the last let-go counts: 10 cm (after a drop at 30) and 20 cm
+    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | - | held 1, outside 2 | 15.0 cm |",
+                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm | 85 deg | - | - |"]
+    assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
