@@ -28,9 +28,10 @@ object's footprint onto itself (a half turn for a bar, a quarter for a square bl
 yaw is None). A bar closed along its length is missed however near the TCP comes.
 
 `releases` says where the named object was each time the fingers stopped holding it, for a task with a goal
-bin: its offset from the bin's centre (x, y, in the world frame) and its height over where it started. A place
-that misses by a few centimetres beside the bin reads apart from a drop on the way (tens of centimetres) and
-from a release too high; the sign of the offsets shows a bias to one side.
+bin: its offset from the bin's centre (x, y, in the world frame), its height over where it started and its
+horizontal speed. A place that misses by a few centimetres beside the bin reads apart from a drop on the way
+(tens of centimetres), from a release too high and from one made while still moving (the fingers opened
+before the arm arrived); the sign of the offsets shows a bias to one side.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ class GraspProgress:
         self._view = None
         self._start_z: dict[str, float] = {}
         self.closes: list[dict] = []  # {"off_cm", "yaw_off_deg"} at each close before the named object was held
-        self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "up_cm"} at each let-go of the named object
+        self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "up_cm", "speed_cm_s"} at each let-go of the named object
         self._closing = False
 
     def __call__(self, world, inst) -> None:
@@ -106,7 +107,8 @@ class GraspProgress:
         at = self._view.position(self.target)
         dx, dy = (at[:2] - self._view.position(goal)[:2]) * 100
         self.releases.append({"dx_cm": round(float(dx), 1), "dy_cm": round(float(dy), 1),
-                              "up_cm": round(100 * float(at[2] - self._start_z[self.target]), 1)})
+                              "up_cm": round(100 * float(at[2] - self._start_z[self.target]), 1),
+                              "speed_cm_s": round(100 * float(np.hypot(*self._view.velocity(self.target)[:2])), 1)})
 
     def _holds(self, name: str) -> bool:
         return bool(self._view.holding(name) and self._view.position(name)[2] - self._start_z[name] >= LIFT_M)

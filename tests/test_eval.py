@@ -60,8 +60,9 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert out.target["color"] and out.target["shape"]
     assert out.held == [f"{out.target['color']} {out.target['shape']}"] and out.failure == ""
     assert out.target_end == "" and out.target_lets_go == 1  # let go once: in its bin
-    (release,) = out.releases  # over the bin's middle, a few cm up
+    (release,) = out.releases  # over the bin's middle, a few cm up, at rest
     assert np.hypot(release["dx_cm"], release["dy_cm"]) < 3.0 and 0.0 < release["up_cm"] < 15.0, release
+    assert release["speed_cm_s"] < 5.0, release
 
 
 @pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
@@ -182,7 +183,7 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
 
     z = {"obj0": 0.02, "obj1": 0.02}
     bin_at = {"bin_left": np.array([0.16, 0.64, 0.0]), "bin_right": np.array([-0.16, 0.64, 0.0])}
-    view = SimpleNamespace(holding=lambda name: name == "obj0",
+    view = SimpleNamespace(holding=lambda name: name == "obj0", velocity=lambda name: np.array([0.03, -0.04, -0.2]),
                            position=lambda name: bin_at[name] if name in bin_at else np.array([0.0, 0.5, z[name]]))
     world = SimpleNamespace(tcp_pose=lambda: np.eye(4), gripper_command=lambda: 0.0)
     bins = {"target": "obj0", "bin": "bin_left", "bins": [["left", 0.16], ["right", -0.16]]}
@@ -198,7 +199,8 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     view.inside = lambda obj, container: False
     p(world, inst)
     assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
-    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "up_cm": 1.5}]  # where it left the fingers, off bin_left
+    # where it left the fingers, off bin_left, and how fast it went sideways then
+    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "up_cm": 1.5, "speed_cm_s": 5.0}]
     view.inside = lambda obj, container: container == "bin_right"
     assert p.target_end(inst) == "wrong_bin"
     assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
