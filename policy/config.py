@@ -59,9 +59,6 @@ class PolicyConfig:
     # channels, so the spatial-softmax keypoints can follow *the named* object. Without it the keypoints are
     # instruction-blind and 300 demos did not teach the denoiser to pick the target among distractors.
     text_film: bool = True
-    # Whiten the instruction embedding over the training instructions, with this ridge (0: off); the bin
-    # word is MiniLM's smallest variation, smaller than the phrasing (policy/text_whiten.py)
-    text_whiten: float = field(default=0.0, metadata=spec(0.0, 1.0, doc="ridge of the instruction whitening; 0 = off"))
     proprio_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     text_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     # denoiser

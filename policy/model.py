@@ -33,7 +33,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from policy.config import TEXT_DIM, PolicyConfig
-from policy.text_whiten import TextWhitening
 
 
 def _gn(ch: int) -> nn.GroupNorm:
@@ -133,25 +132,17 @@ class ObsEncoder(nn.Module):
                                      nn.Linear(cfg.proprio_feature_dim, cfg.proprio_feature_dim))
         self.text = nn.Sequential(nn.Linear(TEXT_DIM, cfg.text_feature_dim), nn.Mish(),
                                   nn.Linear(cfg.text_feature_dim, cfg.text_feature_dim))
-        self.text_whiten = TextWhitening(TEXT_DIM) if cfg.text_whiten > 0 else None
 
     def forward(self, images: dict[str, torch.Tensor] | None, proprio: torch.Tensor, text: torch.Tensor,
                 image_features: torch.Tensor | None = None) -> torch.Tensor:
         """image_features (B, To, cameras x image_feature_dim): what `camera_features` gave for these images,
         computed earlier (policy.feature_cache: frozen encoders); then `images` is not read."""
-        text = self._whiten(text)
-        feats = [image_features if image_features is not None else self._camera_features(images, text)]
+        feats = [image_features if image_features is not None else self.camera_features(images, text)]
         feats.append(self.proprio(proprio))
         return torch.cat([torch.cat(feats, dim=-1).flatten(1), self.text(text)], dim=-1)
 
-    def _whiten(self, text: torch.Tensor) -> torch.Tensor:
-        return text if self.text_whiten is None else self.text_whiten(text)
-
     def camera_features(self, images: dict[str, torch.Tensor], text: torch.Tensor) -> torch.Tensor:
         """images {camera: (B, To, 3, h, w)}, text (B, 384) -> (B, To, cameras x image_feature_dim)."""
-        return self._camera_features(images, self._whiten(text))
-
-    def _camera_features(self, images: dict[str, torch.Tensor], text: torch.Tensor) -> torch.Tensor:
         b, to = next(iter(images.values())).shape[:2]
         per_frame = text.repeat_interleave(to, dim=0)  # (B*To, 384), in the order of images.flatten(0, 1)
         return torch.cat([self.images[c](images[c].flatten(0, 1), per_frame).view(b, to, -1)

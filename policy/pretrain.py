@@ -37,9 +37,9 @@ from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
 from policy.ema import EMA
 from policy.train import lr_factor, save_checkpoint
-from policy import text_whiten, warm_start
+from policy import warm_start
 from policy.validate import Validator
-from policy.warm_start import pretrained_modules
+from policy.warm_start import PRETRAINED
 
 
 class Views:
@@ -131,9 +131,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
             raise ValueError(f"--init-from {init_from}: not a `sudd pretrain` run (its dataset.json has no "
                              "'pretrain'); go on from a pretrain run, or start afresh")
         warm = warm_start.load_into(model, init_from)
-    whitened = text_whiten.prepare(model, fit, warm)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
-    params = [p for m in pretrained_modules(model).values() for p in m.parameters()]
+    params = [p for name in PRETRAINED for p in model.get_submodule(name).parameters()]
     opt = torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, cfg.warmup_steps, steps))
     run_dir = Path(out_run_dir)
@@ -145,9 +144,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     fit.normalizer.save(run_dir / "stats.npz")
     offsets_m = {k: np.round(offsets[k], 4).tolist() for k in ("grasp", "release")}
-    info = dict(fit.info(), text_whiten=whitened,
-                pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
-                          "offsets_m": offsets_m})
+    info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
+                                      "offsets_m": offsets_m})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)

@@ -33,7 +33,7 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Sampler
 from torch.utils.data._utils.collate import default_collate
 
-from policy import text_whiten, warm_start
+from policy import warm_start
 from policy.ema import EMA
 from policy.config import PolicyConfig, config_from_dict, load_policy_config
 from policy.data import PolicyDataset, finish_images, to_device
@@ -196,15 +196,13 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
 
     model = DiffusionPolicy(cfg)
     warm = warm_start.load_into(model, init_from) if ckpt is None and init_from is not None else None
-    if ckpt is None:
-        info["text_whiten"] = text_whiten.prepare(model, ds, warm)
     if cfg.freeze_pretrained:
         if ckpt is None and init_from is None:
             raise ValueError("freeze_pretrained keeps the image encoders and aux head as initialized: start the "
                              "run with init_from (--init-from RUN, a `sudd pretrain` run), or leave it false")
-        for name, module in warm_start.pretrained_modules(model).items():
+        for name in warm_start.PRETRAINED:
             if not (name == "aux_head" and cfg.train_aux_head):
-                module.requires_grad_(False)
+                model.get_submodule(name).requires_grad_(False)
     model = model.to(dev)
     table = None
     if cfg.feature_cache:  # the frozen encoders' output, once (policy.feature_cache)

@@ -27,18 +27,7 @@ from policy.normalize import Normalizer
 
 RECORD = "warm_start.json"
 # what `sudd pretrain` trains: from a pretrain run only these are taken (its denoiser and projections are untrained)
-PRETRAINED = ("obs_encoder.images", "aux_head", "obs_encoder.text_whiten")
-
-
-def pretrained_modules(model: torch.nn.Module) -> dict[str, torch.nn.Module]:
-    """The PRETRAINED modules this model has (text_whiten only where its config turns it on)."""
-    found = {}
-    for name in PRETRAINED:
-        try:
-            found[name] = model.get_submodule(name)
-        except AttributeError:  # an optional module left out (None)
-            pass
-    return found
+PRETRAINED = ("obs_encoder.images", "aux_head")
 
 
 def source_checkpoint(source_run: str | Path) -> Path:
