@@ -28,8 +28,8 @@ object's footprint onto itself (a half turn for a bar, a quarter for a square bl
 yaw is None). A bar closed along its length is missed however near the TCP comes.
 
 `releases` says where the named object was each time the fingers stopped holding it, for a task with a goal
-bin: its offset from the bin's centre (x, y, in the world frame), its height over where it started and its
-horizontal speed. A place that misses by a few centimetres beside the bin reads apart from a drop on the way
+bin: its offset from the bin's centre (x, y, in the world frame), the TCP's, its height over where it started
+and its horizontal speed. A place that misses by a few centimetres beside the bin reads apart from a drop on the way
 (tens of centimetres), from a release too high and from one made while still moving (the fingers opened
 before the arm arrived); the sign of the offsets shows a bias to one side.
 """
@@ -63,7 +63,7 @@ class GraspProgress:
         self._view = None
         self._start_z: dict[str, float] = {}
         self.closes: list[dict] = []  # {"off_cm", "yaw_off_deg"} at each close before the named object was held
-        self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "up_cm", "speed_cm_s"} at each let-go of the named object
+        self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "tcp_dx_cm", ...} at each let-go of the named object
         self._closing = False
 
     def __call__(self, world, inst) -> None:
@@ -78,7 +78,7 @@ class GraspProgress:
             if o.name == self.target:
                 if self._holding_target and not holding:
                     self.target_lets_go += 1
-                    self._release(inst)
+                    self._release(world, inst)
                 self._holding_target = holding
         closing = world.gripper_command() > 0.5
         if self.target is not None and self.target not in self.held:
@@ -100,13 +100,15 @@ class GraspProgress:
             miss["yaw_off_deg"] = round(float(np.degrees(off)), 1)
         return miss
 
-    def _release(self, inst) -> None:
+    def _release(self, world, inst) -> None:
         goal = inst.params.get("bin")
         if not goal:
             return
-        at = self._view.position(self.target)
-        dx, dy = (at[:2] - self._view.position(goal)[:2]) * 100
+        at, centre = self._view.position(self.target), self._view.position(goal)[:2]
+        dx, dy = (at[:2] - centre) * 100
+        tcp_dx, tcp_dy = (world.tcp_pose()[:2, 3] - centre) * 100
         self.releases.append({"dx_cm": round(float(dx), 1), "dy_cm": round(float(dy), 1),
+                              "tcp_dx_cm": round(float(tcp_dx), 1), "tcp_dy_cm": round(float(tcp_dy), 1),
                               "up_cm": round(100 * float(at[2] - self._start_z[self.target]), 1),
                               "speed_cm_s": round(100 * float(np.hypot(*self._view.velocity(self.target)[:2])), 1)})
 

@@ -62,7 +62,7 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert out.target_end == "" and out.target_lets_go == 1  # let go once: in its bin
     (release,) = out.releases  # over the bin's middle, a few cm up, at rest
     assert np.hypot(release["dx_cm"], release["dy_cm"]) < 3.0 and 0.0 < release["up_cm"] < 15.0, release
-    assert release["speed_cm_s"] < 5.0, release
+    assert release["speed_cm_s"] < 5.0 and np.hypot(release["tcp_dx_cm"], release["tcp_dy_cm"]) < 3.0, release
 
 
 @pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
@@ -200,7 +200,8 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     p(world, inst)
     assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
     # where it left the fingers, off bin_left, and how fast it went sideways then
-    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "up_cm": 1.5, "speed_cm_s": 5.0}]
+    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "tcp_dx_cm": -16.0, "tcp_dy_cm": -64.0, "up_cm": 1.5,
+                           "speed_cm_s": 5.0}]  # the TCP (identity pose: at the origin) is off the bin too
     view.inside = lambda obj, container: container == "bin_right"
     assert p.target_end(inst) == "wrong_bin"
     assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
