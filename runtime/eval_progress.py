@@ -29,9 +29,9 @@ yaw is None). A bar closed along its length is missed however near the TCP comes
 
 `releases` says where the named object was each time the fingers stopped holding it, for a task with a goal
 bin: its offset from the bin's centre (x, y, in the world frame), the TCP's, its height over where it started
-and its horizontal speed. A place that misses by a few centimetres beside the bin reads apart from a drop on the way
-(tens of centimetres), from a release too high and from one made while still moving (the fingers opened
-before the arm arrived); the sign of the offsets shows a bias to one side.
+and its horizontal speed. A place that misses by a few centimetres beside the bin reads apart from a drop on
+the way (tens of centimetres), from a release too high and from one made while still moving; the sign of the
+offsets shows a bias to one side, and the TCP's whether the arm arrived off or the object hung off the TCP.
 """
 
 from __future__ import annotations
