@@ -55,24 +55,24 @@ def summarise(records: list[dict]) -> list[dict]:
         turned = [[abs(c["yaw_off_deg"]) for c in r.get("closes", ()) if c.get("yaw_off_deg") is not None]
                   for r in rs if r.get("failure") == "no_grasp"]
         yaw = sorted(median(t) for t in turned if t)
-        placed, missed = ([_last_release_cm(r) for r in rs if r.get("releases") and pick(r)]
-                          for pick in (lambda r: r["success"], lambda r: r.get("failure") == "target_not_placed"))
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
                      "failures": dict(failures), "ends": dict(ends),
                      "no_grasp_closest_cm": near[len(near) // 2] if near else None,
                      "no_grasp_close_yaw_off_deg": yaw[len(yaw) // 2] if yaw else None,
-                     "release_off_cm": {"success": median(placed) if placed else None,
-                                        "target_not_placed": median(missed) if missed else None},
+                     "release_off_cm": {"success": _last_release_cm([r for r in rs if r["success"]]),
+                                        "target_not_placed": _last_release_cm(
+                                            [r for r in rs if r.get("failure") == "target_not_placed"])},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end")))})
     return rows
 
 
-def _last_release_cm(record: dict) -> float:
-    """How far (horizontally) from the goal bin's centre the named object last left the fingers."""
-    last = record["releases"][-1]
-    return math.hypot(last["dx_cm"], last["dy_cm"])
+def _last_release_cm(records: list[dict]) -> float | None:
+    """Median over the records that let go of the named object: how far (horizontally) from the goal bin's
+    centre it last left the fingers; None when none did."""
+    off = [math.hypot(r["releases"][-1]["dx_cm"], r["releases"][-1]["dy_cm"]) for r in records if r.get("releases")]
+    return median(off) if off else None
 
 
 def markdown_table(rows: list[dict]) -> str:
