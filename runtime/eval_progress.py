@@ -32,6 +32,9 @@ bin: its offset from the bin's centre (x, y, in the world frame), the TCP's, its
 and its horizontal speed. A place that misses by a few centimetres beside the bin reads apart from a drop on
 the way (tens of centimetres), from a release too high and from one made while still moving; the sign of the
 offsets shows a bias to one side, and the TCP's whether the arm arrived off or the object hung off the TCP.
+With the plan the controller follows (`plan`: the newest accepted chunk), `aim_dx_cm` and `aim_dy_cm` say
+where that chunk wanted the TCP at the moment of the let-go: an aim off the centre is the policy's error, a
+TCP off an aim on the centre the controller's.
 """
 
 from __future__ import annotations
@@ -65,6 +68,11 @@ class GraspProgress:
         self.closes: list[dict] = []  # {"off_cm", "yaw_off_deg"} at each close before the named object was held
         self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "tcp_dx_cm", ...} at each let-go of the named object
         self._closing = False
+        self._plan: tuple[np.ndarray, np.ndarray] | None = None  # the accepted chunk: times (s), positions (m)
+
+    def plan(self, times_s, positions) -> None:
+        """The chunk the controller now follows: its action times (s, the sim's clock) and TCP targets (N, 3)."""
+        self._plan = np.asarray(times_s, float), np.asarray(positions, float)
 
     def __call__(self, world, inst) -> None:
         if self._view is None:
@@ -107,8 +115,14 @@ class GraspProgress:
         at, centre = self._view.position(self.target), self._view.position(goal)[:2]
         dx, dy = (at[:2] - centre) * 100
         tcp_dx, tcp_dy = (world.tcp_pose()[:2, 3] - centre) * 100
+        aim_dx = aim_dy = None
+        if self._plan is not None:  # the chunk's target now, between its knots (held at its ends)
+            times, at_knots = self._plan
+            aim = np.array([np.interp(world.time, times, at_knots[:, i]) for i in (0, 1)])
+            aim_dx, aim_dy = (round(float(v), 1) for v in (aim - centre) * 100)
         self.releases.append({"dx_cm": round(float(dx), 1), "dy_cm": round(float(dy), 1),
                               "tcp_dx_cm": round(float(tcp_dx), 1), "tcp_dy_cm": round(float(tcp_dy), 1),
+                              "aim_dx_cm": aim_dx, "aim_dy_cm": aim_dy,
                               "up_cm": round(100 * float(at[2] - self._start_z[self.target]), 1),
                               "speed_cm_s": round(100 * float(np.hypot(*self._view.velocity(self.target)[:2])), 1)})
 

@@ -55,23 +55,26 @@ def summarise(records: list[dict]) -> list[dict]:
         turned = [[abs(c["yaw_off_deg"]) for c in r.get("closes", ()) if c.get("yaw_off_deg") is not None]
                   for r in rs if r.get("failure") == "no_grasp"]
         yaw = sorted(median(t) for t in turned if t)
+        ok, tnp = [r for r in rs if r["success"]], [r for r in rs if r.get("failure") == "target_not_placed"]
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
                      "failures": dict(failures), "ends": dict(ends),
                      "no_grasp_closest_cm": near[len(near) // 2] if near else None,
                      "no_grasp_close_yaw_off_deg": yaw[len(yaw) // 2] if yaw else None,
-                     "release_off_cm": {"success": _last_release_cm([r for r in rs if r["success"]]),
-                                        "target_not_placed": _last_release_cm(
-                                            [r for r in rs if r.get("failure") == "target_not_placed"])},
+                     "release_off_cm": {"success": _last_release_cm(ok), "target_not_placed": _last_release_cm(tnp)},
+                     "release_aim_off_cm": {"success": _last_release_cm(ok, "aim_"),
+                                            "target_not_placed": _last_release_cm(tnp, "aim_")},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end")))})
     return rows
 
 
-def _last_release_cm(records: list[dict]) -> float | None:
+def _last_release_cm(records: list[dict], prefix: str = "") -> float | None:
     """Median over the records that let go of the named object: how far (horizontally) from the goal bin's
-    centre it last left the fingers; None when none did."""
-    off = [math.hypot(r["releases"][-1]["dx_cm"], r["releases"][-1]["dy_cm"]) for r in records if r.get("releases")]
+    centre it last left the fingers (prefix "aim_": where the followed chunk aimed the TCP then); None when
+    none did (or none recorded an aim)."""
+    last = [r["releases"][-1] for r in records if r.get("releases")]
+    off = [math.hypot(x[f"{prefix}dx_cm"], x[f"{prefix}dy_cm"]) for x in last if x.get(f"{prefix}dx_cm") is not None]
     return median(off) if off else None
 
 
@@ -98,7 +101,8 @@ def failure_table(rows: list[dict]) -> str:
     ends = sorted({e for r in pol for e in r.get("ends", {})})
     lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends))
              + " | no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
-             "| target_not_placed: the object ended | target_not_placed: let go off the goal's centre (median) |",
+             "| target_not_placed: the object ended "
+             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) |",
              "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 4)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
         near = r.get("no_grasp_closest_cm")
@@ -109,7 +113,8 @@ def failure_table(rows: list[dict]) -> str:
         where = r.get("target_ends", {})
         cells.append(", ".join(f"{e} {where[e]}" for e in TARGET_ENDS if where.get(e)) or "-")
         off = (r.get("release_off_cm") or {}).get("target_not_placed")
-        cells.append("-" if off is None else f"{off:.1f} cm")
+        aim = (r.get("release_aim_off_cm") or {}).get("target_not_placed")
+        cells.append("-" if off is None else f"{off:.1f} cm" + ("" if aim is None else f" (aimed {aim:.1f} cm)"))
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -132,6 +132,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 _run(loop, rig, lag_cycles, rec)
                 times = (t_obs + dt_ns * (1 + np.arange(len(actions)))).astype(np.int64)
                 ok = loop.submit(ActionChunk(actions=actions.astype(np.float64), times_ns=times, obs_time_ns=t_obs))
+                if ok:  # its action times on the sim's clock, which the rig's started behind (the settling)
+                    progress.plan(rig.world.time + (times - rig.now_ns()) * 1e-9, actions[:, :3])
                 out.chunks += 1
                 out.rejected_chunks += not ok
             _run(loop, rig, per_tick - lag_cycles, rec)

@@ -63,6 +63,8 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     (release,) = out.releases  # over the bin's middle, a few cm up, at rest
     assert np.hypot(release["dx_cm"], release["dy_cm"]) < 3.0 and 0.0 < release["up_cm"] < 15.0, release
     assert release["speed_cm_s"] < 5.0 and np.hypot(release["tcp_dx_cm"], release["tcp_dy_cm"]) < 3.0, release
+    # the chunk being followed aims where the TCP is: the replay holds still over the bin to let go
+    assert np.hypot(release["aim_dx_cm"] - release["tcp_dx_cm"], release["aim_dy_cm"] - release["tcp_dy_cm"]) < 1.0
 
 
 @pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
@@ -200,8 +202,16 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     p(world, inst)
     assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
     # where it left the fingers, off bin_left, and how fast it went sideways then
-    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "tcp_dx_cm": -16.0, "tcp_dy_cm": -64.0, "up_cm": 1.5,
-                           "speed_cm_s": 5.0}]  # the TCP (identity pose: at the origin) is off the bin too
+    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "tcp_dx_cm": -16.0, "tcp_dy_cm": -64.0, "aim_dx_cm": None,
+                           "aim_dy_cm": None, "up_cm": 1.5, "speed_cm_s": 5.0}]  # the TCP (at the origin) is off too
+    # with a plan, where it aimed at the let-go: between the knots around the world's time
+    p.plan([1.0, 2.0], [[0.16, 0.60, 0.1], [0.20, 0.70, 0.1]])
+    view.holding = lambda name: True
+    p(world, inst)
+    view.holding = lambda name: False
+    world.time = 1.5
+    p(world, inst)
+    assert p.target_lets_go == 2 and (p.releases[1]["aim_dx_cm"], p.releases[1]["aim_dy_cm"]) == (2.0, 1.0)
     view.inside = lambda obj, container: container == "bin_right"
     assert p.target_end(inst) == "wrong_bin"
     assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
@@ -278,8 +288,9 @@ def test_summary_table_and_chart(tmp_path):
     recs[3].update(failure="wrong_object", end="protective_stop", closest_cm=1.0)  # held: not a no_grasp
     recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "target_not_placed", "end": "timeout", "target_end": e, "releases": let_go}
-             for e, let_go in (("outside", [{"dx_cm": 30.0, "dy_cm": 0.0}, {"dx_cm": 6.0, "dy_cm": 8.0}]),
-                               ("held", []), ("outside", [{"dx_cm": 0.0, "dy_cm": -20.0}]))]
+             for e, let_go in (("outside", [{"dx_cm": 30.0, "dy_cm": 0.0},
+                                            {"dx_cm": 6.0, "dy_cm": 8.0, "aim_dx_cm": 3.0, "aim_dy_cm": 4.0}]),
+                               ("held", []), ("outside", [{"dx_cm": 0.0, "dy_cm": -20.0, "aim_dx_cm": None}]))]
     recs[0]["releases"] = [{"dx_cm": 1.0, "dy_cm": 0.0, "up_cm": 4.0}]
     recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "no_grasp", "end": "timeout", "closest_cm": c, "closes": k}
@@ -294,11 +305,14 @@ def test_summary_table_and_chart(tmp_path):
     why = failure_table(rows).splitlines()
     assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
                       "| ended: timeout | no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
-                      "| target_not_placed: the object ended | target_not_placed: let go off the goal's centre (median) |")
-    # the last let-go counts: 10 cm (after a drop at 30) and 20 cm
-    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | - | held 1, outside 2 | 15.0 cm |",
+                      "| target_not_placed: the object ended "
+                      "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) |")
+    # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm)
+    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | - | - | held 1, outside 2 "
+                       "| 15.0 cm (aimed 5.0 cm) |",
                        "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | 7.2 cm | 85 deg | - | - |"]
     assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
+    assert rows[1]["release_aim_off_cm"] == {"success": None, "target_not_placed": 5.0}
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
