@@ -75,12 +75,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "head's. Success well above `sudd eval`'s: the head is what fails; about the same: control.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n  sudd oracle-eval out/run_fc5 --episodes 30 --inference-steps 16 --out out/oracle\n"
-               "  sudd oracle-eval out/run_fc5 --episodes 30 --bias-cm 2 --out out/oracle_2cm   # perception 2 cm off")
+               "  sudd oracle-eval out/run_fc5 --episodes 30 --bias-cm 2 --out out/oracle_2cm   # perception 2 cm off\n"
+               "  sudd oracle-eval out/run_fc5 --episodes 120 --true-points release --latency-ms 6 --workers 2 "
+               "--out out/oracle_rel")
     orc.add_argument("run", type=Path, help="training run directory (aux_condition, tcp frames)")
     orc.add_argument("--out", type=Path, required=True, help="directory for results.jsonl and results.md")
     orc.add_argument("--episodes", type=int, default=30, help="episodes, seeds seed-offset.. (default 30)")
     orc.add_argument("--seed-offset", type=int, default=100000, help="first seed (default 100000, as sudd eval)")
     orc.add_argument("--bias-cm", type=float, default=0.0, help="move the true grasp point this far sideways")
+    orc.add_argument("--true-points", choices=("both", "grasp", "release"), default="both",
+                     help="which of the head's points the truth replaces (default both; with one, the other stays "
+                          "the head's)")
+    orc.add_argument("--latency-ms", type=float, metavar="MS",
+                     help="a fixed simulated inference lag, as `sudd eval --latency-ms` (default: each one measured)")
     orc.add_argument("--inference-steps", type=int, help="DDIM steps (default the run's; match the bundle's)")
     orc.add_argument("--dr", default="heavy", help="DR preset off|light|heavy or a TOML file (default heavy)")
     orc.add_argument("--workers", type=int, default=1, help="processes (default 1)")
@@ -183,8 +190,10 @@ def _oracle_eval(args) -> int:
             raise SystemExit(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.bias_cm < 0:
         raise SystemExit(f"--bias-cm must be >= 0, got {args.bias_cm}")
+    if args.latency_ms is not None and not 0.0 <= args.latency_ms <= 1000.0:
+        raise SystemExit(f"--latency-ms must be in [0, 1000], got {args.latency_ms}")
     rows = oracle_eval(args.run, args.out, args.episodes, args.seed_offset, args.bias_cm, args.inference_steps,
-                       args.dr, args.workers)
+                       args.dr, args.workers, true_points=args.true_points, latency_ms=args.latency_ms)
     print(markdown_table(rows))
     print(f"per episode {args.out / 'results.jsonl'}; compare with `sudd eval` on the same seeds")
     return 0

@@ -8,7 +8,9 @@ bin's positions plus the median offsets at which the run's demonstrations close 
 (`datagen.views.measure_offsets`), in the TCP frame as training gives them. The grasp point follows the object
 until it leaves the table, then stays where it was (the aux target is where the fingers closed).
 `--bias-cm` moves the grasp point that far sideways, in a direction drawn per episode: how precisely
-perception has to place it.
+perception has to place it. `--true-points grasp` or `release` replaces only that point and leaves the other
+the head's: which of the two the failures come from (a place missed beside the bin, a grasp missed beside
+the object).
 
 It runs the run's torch checkpoint (EMA weights), not the ONNX bundle, whose obs encoder fuses the head into the
 denoiser's conditioning. That torch is why this lives in policy/ and not in runtime/.
@@ -23,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 GRASP, RELEASE = 0, 1
+TRUE_POINTS = {"both": (GRASP, RELEASE), "grasp": (GRASP,), "release": (RELEASE,)}  # --true-points: which are replaced
 LIFTED_M = 0.01  # the object counts as taken once it is this far above where it started
 
 
@@ -48,8 +51,12 @@ class TruePoints:
 class OracleAuxPolicy:
     """What `runtime.evaluate.run_policy_episode` needs of a bundle, from a torch run, with true aux points."""
 
-    def __init__(self, model, normalizer, embedder, inference_steps: int | None = None, control_hz: float = 10.0):
+    def __init__(self, model, normalizer, embedder, inference_steps: int | None = None, control_hz: float = 10.0,
+                 true_points: str = "both"):
         cfg = model.cfg
+        if true_points not in TRUE_POINTS:
+            raise ValueError(f"true_points {true_points!r}: expected one of {sorted(TRUE_POINTS)}")
+        self.replaced = TRUE_POINTS[true_points]
         if not cfg.aux_condition or cfg.aux_target_frame != "tcp" or cfg.action_frame != "tcp":
             raise ValueError("oracle-eval needs a run with aux_condition = true and the tcp aux target and action "
                              f"frames; this one has aux_condition={cfg.aux_condition}, aux_target_frame="
@@ -68,8 +75,8 @@ class OracleAuxPolicy:
         return np.asarray(self._embedder([text]), np.float32)[0]
 
     def cond(self, images: dict, proprio: np.ndarray, text_embedding: np.ndarray):
-        """The denoiser's global cond (1, G) with the aux head's points replaced by the true ones (a grasp axis
-        after them stays the head's)."""
+        """The denoiser's global cond (1, G) with the aux head's points (those `true_points` names) replaced by
+        the true ones (a grasp axis after them stays the head's)."""
         import torch
 
         from policy.data import relative_to_tcp
@@ -82,7 +89,9 @@ class OracleAuxPolicy:
             p = torch.from_numpy(self.normalizer.normalize_proprio(proprio))[None]
             cond = self.model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
         start = cond.shape[1] - cfg.aux_dim
-        cond[0, start:start + 6] = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
+        true = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
+        for k in self.replaced:
+            cond[0, start + 3 * k:start + 3 * k + 3] = true[3 * k:3 * k + 3]
         return cond
 
     def act(self, images, proprio, text_embedding, noise=None, rng=None) -> np.ndarray:
@@ -111,7 +120,8 @@ def _init(settings: dict) -> None:
 
     torch.set_num_threads(1)
     model, _, _ = load_run_model(settings["run"])
-    policy = OracleAuxPolicy(model, source_normalizer(settings["run"]), default_embedder(), settings["steps"])
+    policy = OracleAuxPolicy(model, source_normalizer(settings["run"]), default_embedder(), settings["steps"],
+                             true_points=settings["true_points"])
     _WORKER.update(settings=settings, policy=policy)
 
 
@@ -124,17 +134,23 @@ def _job(seed: int) -> dict:
     policy.truth = TruePoints(offsets, s["bias_cm"], seed)
     t0 = time.perf_counter()
     out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
-                             time_limit_factor=s["time_limit_factor"],
+                             time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"],
                              holdout=Holdout(colors=tuple(s["holdout"]["colors"]),
                                              shapes=tuple(s["holdout"]["shapes"])))
-    suite = "oracle" if s["bias_cm"] == 0 else f"oracle+{s['bias_cm']:g}cm"
+    suite = "oracle" if s["true_points"] == "both" else f"oracle-{s['true_points']}"
+    suite += "" if s["bias_cm"] == 0 else f"+{s['bias_cm']:g}cm"
     return {"suite": suite, "who": "policy", **out.record(), "wall_s": round(time.perf_counter() - t0, 2)}
 
 
 def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_offset: int = 100000,
                 bias_cm: float = 0.0, inference_steps: int | None = None, dr: str = "heavy", workers: int = 1,
-                progress: bool = True, time_limit_factor: float = 1.0) -> list[dict]:
-    """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows."""
+                progress: bool = True, time_limit_factor: float = 1.0, true_points: str = "both",
+                latency_ms: float | None = None) -> list[dict]:
+    """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows.
+    true_points: which aux points the truth replaces (TRUE_POINTS); latency_ms: a fixed simulated inference lag
+    (as `sudd eval --latency-ms`: a rerun is then the same episodes) instead of each inference's measured one."""
+    if true_points not in TRUE_POINTS:
+        raise ValueError(f"true_points {true_points!r}: expected one of {sorted(TRUE_POINTS)}")
     from datagen.views import TASK, measure_offsets
     from runtime.eval_report import failure_table, markdown_table, summarise
 
@@ -142,7 +158,8 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
     dataset = json.loads((run_dir / "dataset.json").read_text())
     offsets = measure_offsets(dataset["path"])
     settings = {"run": str(run_dir), "task": TASK, "dr": dr, "bias_cm": float(bias_cm), "steps": inference_steps,
-                "time_limit_factor": time_limit_factor,
+                "time_limit_factor": time_limit_factor, "true_points": true_points,
+                "latency_s": None if latency_ms is None else latency_ms / 1000.0,
                 "holdout": dataset.get("holdout") or {"colors": [], "shapes": []},
                 "offsets": {k: np.asarray(offsets[k]).tolist() for k in ("grasp", "release")}}
     seeds = list(range(seed_offset, seed_offset + episodes))

@@ -76,6 +76,16 @@ def test_the_denoiser_gets_the_true_points_in_the_tcp_frame_and_the_head_is_bypa
     assert not torch.allclose(cond[0, -AUX_DIM:], head[0, -AUX_DIM:])
     chunk = policy.act(images, proprio, emb, rng=np.random.default_rng(1))
     assert chunk.shape == (cfg.pred_horizon, cfg.action_dim) and np.isfinite(chunk).all()
+    # one point true, the other the head's
+    for which, k in (("grasp", 0), ("release", 1)):
+        one = OracleAuxPolicy(policy.model, policy.normalizer, hash_embedder, true_points=which)
+        one.truth = policy.truth
+        c = one.cond(images, proprio, emb)[0, -AUX_DIM:]
+        true, own = slice(3 * k, 3 * k + 3), slice(3 - 3 * k, 6 - 3 * k)
+        torch.testing.assert_close(c[true], cond[0, -AUX_DIM:][true])
+        torch.testing.assert_close(c[own], head[0, -AUX_DIM:][own])
+    with pytest.raises(ValueError, match="true_points 'bin'"):
+        OracleAuxPolicy(policy.model, policy.normalizer, hash_embedder, true_points="bin")
 
 
 def test_oracle_eval_runs_episodes_through_the_controller_and_writes_them(run, tmp_path):
@@ -88,6 +98,13 @@ def test_oracle_eval_runs_episodes_through_the_controller_and_writes_them(run, t
     recs = [json.loads(x) for x in (tmp_path / "ev" / "results.jsonl").read_text().splitlines()]
     assert [r["seed"] for r in recs] == [SEED] and recs[0]["suite"] == "oracle+1cm" and recs[0]["chunks"] > 0
     assert rows[0]["n"] == 1 and "oracle+1cm" in (tmp_path / "ev" / "results.md").read_text()
+    # a fixed lag makes a rerun the same episode; the suite names the replaced point
+    again = [oracle_eval(run, tmp_path / f"ev{i}", episodes=1, seed_offset=SEED, progress=False, time_limit_factor=0.05,
+                         true_points="release", latency_ms=6.0) for i in (0, 1)]
+    recs = [json.loads((tmp_path / f"ev{i}" / "results.jsonl").read_text()) for i in (0, 1)]
+    assert again[0][0]["suite"] == recs[0]["suite"] == "oracle-release"
+    assert recs[0]["inference_ms"]["n"] == recs[1]["inference_ms"]["n"] > 0
+    assert recs[0]["closest_cm"] is not None and recs[1]["closest_cm"] == recs[0]["closest_cm"]
 
 
 def test_a_run_without_aux_condition_is_refused_with_the_fields_named():
