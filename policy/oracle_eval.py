@@ -29,6 +29,13 @@ TRUE_POINTS = {"both": (GRASP, RELEASE), "grasp": (GRASP,), "release": (RELEASE,
 LIFTED_M = 0.01  # the object counts as taken once it is this far above where it started
 
 
+def replaced_points(true_points: str) -> tuple[int, ...]:
+    """--true-points -> the indices (GRASP, RELEASE) of the head's points the truth replaces."""
+    if true_points not in TRUE_POINTS:
+        raise ValueError(f"true_points {true_points!r}: expected one of {sorted(TRUE_POINTS)}")
+    return TRUE_POINTS[true_points]
+
+
 class TruePoints:
     """Observer for `run_policy_episode`: the episode's true grasp and release points (2, 3), base frame [m]."""
 
@@ -54,9 +61,7 @@ class OracleAuxPolicy:
     def __init__(self, model, normalizer, embedder, inference_steps: int | None = None, control_hz: float = 10.0,
                  true_points: str = "both"):
         cfg = model.cfg
-        if true_points not in TRUE_POINTS:
-            raise ValueError(f"true_points {true_points!r}: expected one of {sorted(TRUE_POINTS)}")
-        self.replaced = TRUE_POINTS[true_points]
+        self.replaced = replaced_points(true_points)
         if not cfg.aux_condition or cfg.aux_target_frame != "tcp" or cfg.action_frame != "tcp":
             raise ValueError("oracle-eval needs a run with aux_condition = true and the tcp aux target and action "
                              f"frames; this one has aux_condition={cfg.aux_condition}, aux_target_frame="
@@ -149,8 +154,7 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
     """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows.
     true_points: which aux points the truth replaces (TRUE_POINTS); latency_ms: a fixed simulated inference lag
     (as `sudd eval --latency-ms`: a rerun is then the same episodes) instead of each inference's measured one."""
-    if true_points not in TRUE_POINTS:
-        raise ValueError(f"true_points {true_points!r}: expected one of {sorted(TRUE_POINTS)}")
+    replaced_points(true_points)  # a bad name fails here, before any worker starts
     from datagen.views import TASK, measure_offsets
     from runtime.eval_report import failure_table, markdown_table, summarise
 
