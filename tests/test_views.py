@@ -135,6 +135,31 @@ def test_pretraining_goes_on_from_an_earlier_pretraining_run_only(views_dir, tmp
                  embedder=hash_embedder, init_from=tmp_path / "pre")
 
 
+def test_head_only_pretraining_trains_the_aux_head_and_leaves_the_encoders_as_they_were(views_dir, tmp_path):
+    from policy.pretrain import pretrain
+    from policy.testing import TINY, hash_embedder, synthetic_dataset
+
+    data = synthetic_dataset(tmp_path / "data", episodes=4, smooth=True)
+    over = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "lr": 3e-3, "warmup_steps": 1, "log_every": 5,
+            "color_jitter": 0.0}
+    first = pretrain(views_dir, data, dict(TINY), tmp_path / "pre", 5, over, threads=1, progress=False,
+                     embedder=hash_embedder)
+    head = pretrain(views_dir, data, dict(TINY), tmp_path / "head", 20, over, threads=1, progress=False,
+                    embedder=hash_embedder, init_from=tmp_path / "pre", head_only=True)
+    before, after = (torch.load(s["checkpoint"], weights_only=False) for s in (first, head))
+    start = before["ema"]["model"]  # what the warm start took
+    encoder = [k for k in start if k.startswith("obs_encoder.images.")]
+    assert encoder
+    for trained in (after["model"], after["ema"]["model"]):  # the EMA's averaging of equal weights may round
+        for k in encoder:
+            torch.testing.assert_close(trained[k], start[k], rtol=0, atol=1e-6)
+        assert not torch.allclose(trained["aux_head.2.weight"], start["aux_head.2.weight"])
+    assert json.loads((tmp_path / "head" / "dataset.json").read_text())["pretrain"]["head_only"] is True
+    with pytest.raises(ValueError, match="give init_from"):
+        pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
+                 embedder=hash_embedder, head_only=True)
+
+
 def test_carry_views_hold_the_named_object_on_its_way_to_the_bin():
     from datagen.views_carry import grasp_in_hand, place_carried
     from sim.kinematics import Kinematics
