@@ -28,6 +28,8 @@ from sim.config import ConfigError, as_dict, load_config, spec
 PRESETS = ("small", "full")
 TEXT_DIM = 384  # all-MiniLM-L6-v2
 AUX_DIM = 6  # the aux head's grasp and release points
+# metres -> units of the "tcp" auxiliary target: offsets across the reachable table come out about unit size
+AUX_TCP_SCALE = 0.25
 AXIS_DIM = 2  # with aux_grasp_axis: the grasp axis after them (policy/grasp_axis.py)
 
 
@@ -92,6 +94,12 @@ class PolicyConfig:
         "chunk is drawn towards where the images say the object is (needs aux_target_weight > 0); training "
         "feeds the true points plus aux_condition_noise, inference the head's prediction (exported in "
         "obs_encoder.onnx)")))
+    aux_release_frame: str = field(default="tcp", metadata=spec(choices=("tcp", "base"), doc=(
+        "frame in which the aux head reads the release point: tcp (with the grasp point, relative to the "
+        "gripper) or base (where the bin is, which no arm pose changes: the denoiser still gets it relative to "
+        "the gripper, turned there in the graph from the newest proprio); needs aux_target_frame tcp. A probe "
+        "on the control's frozen features, taught on approach views only: 2.8 cm off while carrying in the base "
+        "frame, 14.1 cm relative to the gripper")))
     aux_grasp_axis: bool = field(default=False, metadata=spec(doc=(
         "the aux head also regresses the grasp's axis relative to the gripper's yaw, (cos 2d, sin 2d), (0, 0) "
         "for objects without one axis (policy/grasp_axis.py), so the encoder learns which way a bar lies; with "
@@ -168,6 +176,10 @@ class PolicyConfig:
         if self.aux_condition and self.aux_target_weight <= 0:
             raise ConfigError("aux_condition needs aux_target_weight > 0 (the aux head that predicts the points "
                               "it feeds to the denoiser is trained only then)")
+        if self.aux_release_frame == "base" and (self.aux_target_weight <= 0 or self.aux_target_frame != "tcp"):
+            raise ConfigError(f"aux_release_frame 'base' needs aux_target_weight > 0 and aux_target_frame 'tcp' (got "
+                              f"{self.aux_target_weight}, {self.aux_target_frame!r}): it moves only the release "
+                              "point of the gripper-frame aux target to the base frame")
         if self.aux_grasp_axis and (self.aux_target_weight <= 0 or self.aux_target_frame != "tcp"):
             raise ConfigError(f"aux_grasp_axis needs aux_target_weight > 0 and aux_target_frame 'tcp' (got "
                               f"{self.aux_target_weight}, {self.aux_target_frame!r}): the axis is relative to the "

@@ -47,7 +47,7 @@ from datagen.schema import (episode_success, grasp_and_release_per_step,  # noqa
                             grasp_and_release_steps, perturbed_actions)
 from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
-from policy.config import PolicyConfig
+from policy.config import AUX_TCP_SCALE, PolicyConfig  # noqa: F401 (AUX_TCP_SCALE: policy.data API)
 from policy.grasp_axis import axis_label, episode_target_has_axis, yaw_of
 from policy.normalize import Normalizer
 
@@ -119,8 +119,6 @@ def to_device(batch, dev):
     return batch.to(dev, non_blocking=True)
 
 
-# metres -> units of the "tcp" auxiliary target: offsets across the reachable table come out about unit size
-AUX_TCP_SCALE = 0.25
 
 
 def grasp_and_release(normalized: np.ndarray, steps: tuple[int, int]) -> torch.Tensor:
@@ -137,6 +135,16 @@ def relative_to_tcp(points: np.ndarray, proprio: np.ndarray) -> torch.Tensor:
     same way in every scene, where an absolute position has to be worked out from the scene camera."""
     rel = points_to_tcp(points, np.asarray(proprio)[:9])
     return torch.from_numpy((rel / AUX_TCP_SCALE).reshape(6).astype(np.float32))
+
+
+def aux_point_target(points: np.ndarray, proprio: np.ndarray, release_frame: str = "tcp") -> torch.Tensor:
+    """The aux head's point target (6,): `relative_to_tcp`, except that with release_frame "base" the release
+    point stays in the base frame (over the same scale): where the bin is, the same on every frame of an episode
+    (cfg.aux_release_frame; the model turns it relative to the gripper for the denoiser)."""
+    target = relative_to_tcp(points, proprio)
+    if release_frame == "base":
+        target[3:6] = torch.from_numpy((np.asarray(points)[1] / AUX_TCP_SCALE).astype(np.float32))
+    return target
 
 
 class PolicyDataset(torch.utils.data.Dataset):
@@ -317,7 +325,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         k, s = self.index[index]
         now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
         if self.cfg.aux_target_frame == "tcp":
-            points = relative_to_tcp(self.aux_points[k][now], self.tcp_pose[k][now])
+            points = aux_point_target(self.aux_points[k][now], self.tcp_pose[k][now], self.cfg.aux_release_frame)
             if not self.cfg.aux_grasp_axis:
                 return points
             axis = axis_label(self.grasp_yaw[k][now], yaw_of(self.tcp_pose[k][now, 3:9]), self.has_axis[k])

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from datagen.views import load as load_views
 from datagen.views import measure_offsets
 from policy.config import PolicyConfig, load_policy_config
-from policy.data import PolicyDataset, color_jitter, crop, jitter_factors, relative_to_tcp
+from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, jitter_factors
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
 from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
@@ -63,7 +63,8 @@ class Views:
         self.cfg = cfg
         self.images = {c: v[c] for c in cfg.cameras}
         self.proprio = torch.from_numpy(normalizer.normalize_proprio(v["proprio"]).astype(np.float32))
-        self.aux = torch.stack([relative_to_tcp(p, row) for p, row in zip(v["points"], v["proprio"])])
+        self.aux = torch.stack([aux_point_target(p, row, cfg.aux_release_frame)
+                                for p, row in zip(v["points"], v["proprio"])])
         if cfg.aux_grasp_axis:
             if "grasp_yaw" not in v:
                 raise ValueError(f"{views_dir}: aux_grasp_axis needs views that keep the grasp yaw, and (some of) "
@@ -138,6 +139,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     views = Views(views_dir, cfg, fit.normalizer, embedder, offsets)
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
+    model.set_proprio_stats(fit.normalizer)
     warm = None
     if init_from is not None:
         info = Path(init_from) / "dataset.json"

@@ -195,6 +195,7 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     total = steps if steps is not None else (epochs or 1) * batches.per_epoch
 
     model = DiffusionPolicy(cfg)
+    model.set_proprio_stats(ds.normalizer)
     warm = warm_start.load_into(model, init_from) if ckpt is None and init_from is not None else None
     if cfg.freeze_pretrained:
         if ckpt is None and init_from is None:

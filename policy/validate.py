@@ -69,7 +69,7 @@ class Validator:
                 noise = torch.randn(batch["action"].shape, generator=g).to(device)
                 t = torch.randint(0, model.cfg.num_train_timesteps, (noise.shape[0],), generator=g).to(device)
                 features = model.obs_encoder(batch["images"], batch["proprio"], batch["text"])
-                cond = model.cond_from(features)
+                cond = model.cond_from(features, batch["proprio"])
                 pred, target = model.denoise_target(cond, batch["action"], noise, t)
                 losses.append((pred - target).square().mean(dim=(1, 2)).cpu())
                 if self.chunks:
