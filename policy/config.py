@@ -97,9 +97,9 @@ class PolicyConfig:
     aux_release_frame: str = field(default="tcp", metadata=spec(choices=("tcp", "base"), doc=(
         "frame in which the aux head reads the release point: tcp (with the grasp point, relative to the "
         "gripper) or base (where the bin is, which no arm pose changes: the denoiser still gets it relative to "
-        "the gripper, turned there in the graph from the newest proprio); needs aux_target_frame tcp. A probe "
-        "on the control's frozen features, taught on approach views only: 2.8 cm off while carrying in the base "
-        "frame, 14.1 cm relative to the gripper")))
+        "the gripper, turned there in the graph from the newest proprio); needs aux_target_frame tcp. Pretrained "
+        "on approach views only, the head finds it 1.8 cm off while carrying (14.5 cm relative to the gripper); "
+        "the shipped recipe: 86/120 against 63/120 without it")))
     aux_grasp_axis: bool = field(default=False, metadata=spec(doc=(
         "the aux head also regresses the grasp's axis relative to the gripper's yaw, (cos 2d, sin 2d), (0, 0) "
         "for objects without one axis (policy/grasp_axis.py), so the encoder learns which way a bar lies; with "
