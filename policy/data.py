@@ -119,8 +119,6 @@ def to_device(batch, dev):
     return batch.to(dev, non_blocking=True)
 
 
-
-
 def grasp_and_release(normalized: np.ndarray, steps: tuple[int, int]) -> torch.Tensor:
     """(T, Da) normalized actions, `grasp_and_release_steps` -> (6,): the positions at those steps, in the
     actions' normalized units. The "base" auxiliary target of `aux_target_weight`: where the named object is

@@ -94,7 +94,8 @@ def test_head_source_trains_the_denoiser_on_what_inference_feeds():
     with torch.no_grad():
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
         head = model.aux_points(features)
-        want = mse(*model.denoise_target(model.cond_from(features, b["proprio"]), b["action"], noise, t)) + mse(head, b["aux"])
+        cond = model.cond_from(features, b["proprio"])
+        want = mse(*model.denoise_target(cond, b["action"], noise, t)) + mse(head, b["aux"])
         torch.testing.assert_close(model.loss(b, noise, t, torch.randn(3, AUX_DIM)), want)
     # the head learns from its own loss only: the denoiser's loss sends it nothing through the fed points
     grads = []
