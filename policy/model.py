@@ -32,7 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policy.config import AUX_TCP_SCALE, TEXT_DIM, PolicyConfig
+from policy.config import TEXT_DIM, PolicyConfig
+from policy.graph_frames import release_to_tcp
 
 
 def _gn(ch: int) -> nn.GroupNorm:
@@ -274,35 +275,27 @@ class DiffusionPolicy(nn.Module):
         self.register_buffer("alphas_cumprod", ab, persistent=False)
 
     def encode(self, images: dict[str, torch.Tensor], proprio: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
-        """The denoiser's global cond (B, G): the observation features, with aux_condition followed by the aux
-        head's predicted points (what inference has; training feeds the true ones, see `loss`)."""
+        """The denoiser's global cond (B, G): features, then with aux_condition the head's points (training: `loss`)."""
         return self.cond_from(self.obs_encoder(images, proprio, text), proprio)
 
     def cond_from(self, features: torch.Tensor, proprio: torch.Tensor) -> torch.Tensor:
-        """The obs encoder's features (B, G') and the normalized proprio (B, To, Dp) they came from -> the
-        denoiser's global cond at inference (B, G)."""
+        """Obs encoder features (B, G') and their normalized proprio (B, To, Dp) -> the inference cond (B, G)."""
         if not self.cfg.aux_condition:
             return features
-        return torch.cat([self.shown_features(features), self.points_for_denoiser(self.aux_points(features), proprio)],
-                         dim=1)
+        points = self.points_for_denoiser(self.aux_points(features), proprio)
+        return torch.cat([self.shown_features(features), points], dim=1)
 
     def set_proprio_stats(self, normalizer) -> None:
-        """Take the run's proprio normalization (policy.normalize.Normalizer): with aux_release_frame base the
-        model reads the gripper's pose in metres from the normalized proprio (`points_for_denoiser`)."""
+        """Keep the run's proprio normalization (policy.normalize): `points_for_denoiser` reads the pose in metres."""
         if self.cfg.aux_release_frame == "base":
             self.proprio_scale.copy_(torch.from_numpy(normalizer.proprio_scale))
             self.proprio_offset.copy_(torch.from_numpy(normalizer.proprio_offset))
 
     def points_for_denoiser(self, points: torch.Tensor, proprio: torch.Tensor) -> torch.Tensor:
-        """Aux points in the head's frames (B, aux_dim) -> as the denoiser reads them, both relative to the
-        gripper at the newest observation step: with aux_release_frame base the release point p becomes
-        R^T (p - t) (the gripper's pose t, R read back from the normalized proprio (B, To, Dp)); else as given."""
+        """Aux points (B, aux_dim) as the denoiser reads them, both relative to the gripper (release_to_tcp)."""
         if self.cfg.aux_release_frame != "base":
             return points
-        pose = (proprio[:, -1, :9] - self.proprio_offset[:9]) / self.proprio_scale[:9]
-        R = rot6d_matrix(pose[:, 3:9])
-        rel = torch.matmul(R.transpose(1, 2), (points[:, 3:6] * AUX_TCP_SCALE - pose[:, :3]).unsqueeze(2))
-        return torch.cat([points[:, :3], rel.squeeze(2) / AUX_TCP_SCALE, points[:, 6:]], dim=1)
+        return release_to_tcp(points, proprio, self.proprio_scale, self.proprio_offset)
 
     def aux_points(self, features: torch.Tensor) -> torch.Tensor:
         """The aux head's grasp and release points, then any grasp axis (B, cfg.aux_dim), from the obs encoder's features (not from a
@@ -382,18 +375,6 @@ class DiffusionPolicy(nn.Module):
         width = len(cfg.cameras) * cfg.image_feature_dim
         start = (cfg.obs_horizon - 1) * (width + cfg.proprio_feature_dim)
         return cond[:, start:start + width]
-
-
-def rot6d_matrix(d6: torch.Tensor) -> torch.Tensor:
-    """(..., 6) rot6d -> (..., 3, 3) with those columns after Gram-Schmidt (policy.action_frame.rotations in
-    torch, for the exported graph)."""
-    a, b = d6[..., :3], d6[..., 3:6]
-    x = a / a.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    b = b - x * (x * b).sum(-1, keepdim=True)
-    y = b / b.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    z = torch.stack([x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1], x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2],
-                     x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]], dim=-1)
-    return torch.stack([x, y, z], dim=-1)
 
 
 def prepare_images(frames: torch.Tensor, crop_size: tuple[int, int]) -> torch.Tensor:
