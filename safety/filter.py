@@ -22,7 +22,8 @@ this module only orchestrates; each job has its module:
    a target already within every limit passes bit-for-bit unchanged); the output check (safety.admissible:
    TCP caps with anticipation, the arm able to stop inside the workspace), reducing the common factor or
    handing over to the stop policy.
-4. collision guard every N cycles on the predicted pose; its speed scale is held in between.
+4. collision guard every N cycles on the predicted pose; its speed scale is held in between. At scale 0 the
+   stop policy brakes, as the prediction assumed (not the common factor of step 3).
 
 Every cycle's cost is bounded: no step runs an unbounded solver or search (IK and bisections have fixed
 iteration counts), so a hostile command stream cannot make the filter overrun the control cycle.
@@ -143,6 +144,14 @@ class SafetyFilter:
         if target is None:  # the stop policy
             qn, mode = self.tracker.brake()
             st.prev_target = None
+            vn, an = st.advance(qn)
+        elif self.collision_scale <= 0.0:
+            # The guard's stop: its prediction bounded each joint's travel under the stop policy, so brake by
+            # it. Tracking at zero speed would scale all joints by one common factor and let a joint headed
+            # for the contact run on while a faster one brakes. The target is kept as the direction the
+            # command wants, so the next check can let the arm move away.
+            qn, mode = self.tracker.brake()
+            st.prev_target = target[0]
             vn, an = st.advance(qn)
         else:
             target, pose_t, pts_t, slack_t = target

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -106,3 +107,19 @@ def test_guard_stops_the_wrist_before_the_table(table_guard):
     assert z_end > 0.15  # the TCP stopped high: the wrist, not the workspace, was the limit
     kinds = {e.kind for e in res.events}
     assert "collision_stop" in kinds and "collision" in kinds
+
+
+def test_guard_stop_brakes_every_joint_by_the_stop_policy(table_guard):
+    """A joint stream recorded from a policy episode on the sim twin (seed 100014 of the shipped bundle, 0.6 s
+    from rest, 500 Hz): the shoulder lift swings at 0.8 rad/s while the elbow folds the wrist onto the shoulder.
+    The guard predicts each joint braking on its own; tracking at zero speed instead scaled all joints by one
+    factor, so the elbow ran on while the shoulder braked and the links came to 1.4 mm (the full episode: a
+    contact and a protective stop). Braking by the stop policy keeps the stop distance."""
+    lim, guard = table_guard
+    rec = np.load(Path(__file__).with_name("selfcollision_stream.npz"))
+    filt = SafetyFilter(lim, collision=guard)
+    res = run_stream(filt, rec["start"], [Command(q=q, command_time=k * filt.dt) for k, q in enumerate(rec["desired"])])
+    assert not check_stream(res.q, filt.dt, lim, filt.fk, filt.workspace)
+    assert any(e.kind == "collision_stop" for e in res.events)
+    clear = min(guard.check(q, q).clearance_now for q in res.q)
+    assert clear >= lim.collision.stop_distance
