@@ -6,7 +6,8 @@
 Not a shortcut: every chunk goes through `runtime.controller.ControllerLoop` (latency-compensated
 scheduling, blending, interpolation to the 500 Hz servo rate) and every servo command through
 `safety.SafetyFilter`, into the `SimArm`/`SimGripper` twins of a lockstep `SimRig`, exactly the objects
-`sudd run --sim` drives. What differs from `sudd run --sim` is only how time passes:
+`sudd run --sim` drives, under the same limits: the defaults with the episode's bins as keep-out boxes, as a
+real cell declares its fixtures (runtime.sim_cell). What differs from `sudd run --sim` is only how time passes:
 
 * Lockstep, so a run is repeatable and needs no spare cores: the sim does not advance while the policy
   thinks. To keep the policy's real lag, each inference's measured wall time (on this CPU) is then let pass
@@ -35,6 +36,7 @@ import numpy as np
 
 from runtime.controller import ControllerConfig, ControllerLoop
 from runtime.messages import ActionChunk
+from runtime.sim_cell import cell_limits
 from safety import SafetyFilter, default_limits
 from sim.build import build_episode
 from sim.tasks import Holdout
@@ -91,8 +93,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
-    limits = default_limits(ep.world.variant.name)
-    loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(ep.world.variant.name)),
+    limits = cell_limits(default_limits(ep.world.variant.name), ep.world)
+    loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(limits)),
                           controller or ControllerConfig())
     rec = Recorder(ep, image_size=tuple(bundle.image_size))
     hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
@@ -157,12 +159,13 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
 
 
 @functools.lru_cache(maxsize=4)
-def _guard(variant: str):
-    """The safety filter's collision model, built once per process (compiling it takes ~1 s; it keeps no
-    state between checks beyond scratch data, so sequential episodes can share it)."""
+def _guard(limits):
+    """The safety filter's collision model for these limits (the keep-out boxes are this episode's bins),
+    shared by episodes with the same cell: compiling it takes ~1 s, and it keeps no state between checks
+    beyond scratch data."""
     from safety.collision import CollisionGuard
 
-    return CollisionGuard(default_limits(variant))
+    return CollisionGuard(limits)
 
 
 def _run(loop, rig, cycles: int, recorder=None) -> None:

@@ -148,7 +148,12 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 render.wait_ready(episode.world.model)
             rig.start()
             gripper.activate()
-        safety = GuardedFilter(SafetyFilter(load_limits(cfg.limits_file or None, variant=variant)))
+        limits = load_limits(cfg.limits_file or None, variant=variant)
+        if episode is not None:  # the sim cell declares its fixtures (bins) as keep-out boxes
+            from runtime.sim_cell import cell_limits
+
+            limits = cell_limits(limits, episode.world)
+        safety = GuardedFilter(SafetyFilter(limits))
         arm = GuardedArm(raw_arm, safety)
         if cfg.robot_ip and not cfg.allow_motion:
             loop = Hold()

@@ -1,0 +1,26 @@
+"""The sim twin's cell: the safety limits with the scene's fixtures (its bins) added as keep-out boxes.
+
+A real cell declares its fixed furniture in the limits file (`sudd run --limits FILE`, `workspace.keepout`);
+the sim twin knows where DR put this episode's, so `sudd eval` and `sudd run --sim` declare them the same
+way (sim.fixtures says what counts and why).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import mujoco
+
+
+def cell_limits(limits, world):
+    """`limits` with `world`'s fixtures appended to workspace.keepout (validated)."""
+    from sim.fixtures import fixture_boxes
+
+    mujoco.mj_kinematics(world.model, world.data)
+    ws = limits.workspace
+    out = replace(limits, workspace=replace(ws, keepout=tuple(ws.keepout) + fixture_boxes(world.model, world.data)))
+    out.validate()
+    return out
+
+
+__all__ = ["cell_limits"]

@@ -1,0 +1,61 @@
+"""The scene's fixed furniture as axis-aligned boxes, the form a cell's safety config gives its keep-out zones.
+
+Why: a real cell's bins are fixtures that the integrator measures once and declares to the safety layer
+(`workspace.keepout` in the limits file). The sim twin knows its fixtures exactly, so `sudd eval` and
+`sudd run --sim` hand them to the safety filter the same way: the finger points stay out of a bin's walls
+and the collision guard slows near them, where a pad used to press on a wall until the contact force
+stopped the arm.
+
+What counts: collision geoms of bodies welded to the world that are not the robot (the bins; a cabinet's
+carcass but not its drawer, which slides). The table is the safety layer's table plane already, and the
+room's walls and floor (world geoms) lie outside the TCP box.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from sim.robot import ARM_BODIES
+
+Box = tuple[float, float, float, float, float, float]  # (xmin, ymin, zmin, xmax, ymax, zmax), base frame
+OVERHANG = 0.005  # m: how far a turned geom's boxes may stand off its faces
+MAX_PIECES = 16
+
+
+def fixture_boxes(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[Box, ...]:
+    """World-aligned bounding boxes of the fixtures' collision geoms at the current (forwarded) state."""
+    robot_root = model.body(ARM_BODIES[0]).id
+    out: list[Box] = []
+    for g in range(model.ngeom):
+        b = int(model.geom_bodyid[g])
+        if b == 0 or model.body_weldid[b] != 0 or model.body_rootid[b] == robot_root:
+            continue
+        if not (model.geom_contype[g] or model.geom_conaffinity[g]):
+            continue
+        centre, half = model.geom_aabb[g, :3], model.geom_aabb[g, 3:]
+        R = data.geom_xmat[g].reshape(3, 3)
+        c = data.geom_xpos[g] + R @ centre
+        for pc, ph in _pieces(R, half):
+            h = np.abs(R) @ ph  # the piece's extent along the world axes
+            p = c + R @ pc
+            out.append(tuple(float(x) for x in (*(p - h), *(p + h))))
+    return tuple(out)
+
+
+def _pieces(R: np.ndarray, half: np.ndarray):
+    """(centre, half) pieces of a box, in its own frame, cut along its longest axis so that a turned panel's
+    world-aligned boxes stand at most OVERHANG off its faces. Why: one box around a cabinet's side panel turned
+    by 10 degrees is 5 cm thick, and reaches into the drawer the arm has to put things in."""
+    thin, long = int(np.argmin(half)), int(np.argmax(half))
+    across = int(np.argmax(np.abs(R[:, thin])))  # the world axis the panel's thickness mostly lies along
+    n = min(MAX_PIECES, max(1, int(np.ceil(abs(R[across, long]) * half[long] / OVERHANG))))
+    ph = half.copy()
+    ph[long] /= n
+    for k in range(n):
+        pc = np.zeros(3)
+        pc[long] = -half[long] + (2 * k + 1) * ph[long]
+        yield pc, ph
+
+
+__all__ = ["Box", "fixture_boxes"]
