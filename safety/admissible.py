@@ -21,6 +21,8 @@ check of the bisection.
 
 from __future__ import annotations
 
+import math
+
 from safety.fastfk import tcp_speeds
 from safety.joint_limits import PASS, SCALED, STOP
 
@@ -42,15 +44,21 @@ class OutputCheck:
         if ws.keepout:
             self._static_cons = self._static_cons[:6 + len(ws.offsets)]
         self._cons_pts = self._cons = None
+        self._cons_far = 0.0
 
-    def constraints(self):
-        """Constraints at the current output's points (keep-out faces on the side the arm is on), cached."""
+    def constraints(self, travel: float = math.inf):
+        """Constraints at the current output's points (keep-out faces on the side the arm is on), cached.
+
+        `travel`: a bound of how far any point can move in the check at hand; keep-out boxes farther than
+        that are left out (Workspace.constraints). The list is cached with twice that reach, so the
+        bisections of one cycle reuse it."""
         ws, pts = self.workspace, self.stream.pts
         if not ws.keepout:
             return self._static_cons
-        if pts is not self._cons_pts:
-            self._cons = self._static_cons + ws.constraints(pts)[len(self._static_cons):]
-            self._cons_pts = pts
+        if pts is not self._cons_pts or travel > self._cons_far:
+            far = 2.0 * travel
+            self._cons = self._static_cons + ws.constraints(pts, far=far)[len(self._static_cons):]
+            self._cons_pts, self._cons_far = pts, far
         return self._cons
 
     def admissible(self, x, lin_ang=None, slack=None) -> bool:
@@ -93,8 +101,11 @@ class OutputCheck:
     def _stops_inside(self, x, slack) -> bool:
         """Workspace braking for next velocities x (the limiter's dp/dm describe them)."""
         st = self.stream
-        self.limiter.travel_box(x, self.dlo, self.dhi)
-        return self.workspace.braking_ok(st.frames, st.pts, self.constraints(), self.dlo, self.dhi, slack)
+        dlo, dhi = self.dlo, self.dhi
+        self.limiter.travel_box(x, dlo, dhi)
+        reach = self.workspace.reach_max
+        travel = sum(r * (h if h > -lo else -lo) for r, lo, h in zip(reach, dlo, dhi))
+        return self.workspace.braking_ok(st.frames, st.pts, self.constraints(travel), dlo, dhi, slack)
 
     def reduce(self, res: int, out: list, now: float) -> int:
         """Largest common factor between the anchor and the candidate `out` that keeps the TCP speed caps

@@ -38,6 +38,9 @@ class Workspace:
         reach = fk.axis_reach
         self.reach = tuple(tuple(r + math.sqrt(sum(x * x for x in off)) for r in reach) for off in self.offsets)
         self.reach_max = tuple(max(r[i] for r in self.reach) for i in range(len(reach)))
+        # every gripper point lies within this of the TCP: a box this much farther from the TCP than a bound
+        # is farther than that bound from every point (the separation is 1-Lipschitz), so it can be skipped
+        self.grip_radius = max(math.sqrt(sum(x * x for x in off)) for off in self.offsets)
         self._g_key: tuple = (None, None)  # (frames, points) the cached gradients belong to
         self._g: dict = {}
 
@@ -56,11 +59,13 @@ class Workspace:
         pts = self.points((pose[0], pose[1], pose[2]), pose[3])
         return pts, self.min_slack(pts)
 
-    def constraints(self, pts, ref_pts=None):
+    def constraints(self, pts, ref_pts=None, far: float | None = None):
         """[(point index, axis, sign, bound)]: sign * P[axis] <= bound, for these points.
 
         Keep-out boxes contribute, per point, the face it is most clearly outside of (in `ref_pts`, the
-        current output's points, when given), so the check follows the side the arm is on.
+        current output's points, when given), so the check follows the side the arm is on. `far` (without
+        ref_pts): leave out boxes farther than this from every point; their faces' slack exceeds it, so a
+        braking check whose Lipschitz travel is at most `far` skips them anyway.
         """
         out = []
         for axis in range(3):
@@ -68,7 +73,10 @@ class Workspace:
             out.append((0, axis, 1.0, self.bmax[axis]))
         for k in range(len(pts)):
             out.append((k, 2, -1.0, -self.zt))
+        cull = far is not None and ref_pts is None
         for box in self.keepout:
+            if cull and _separation(box, pts[0]) - self.grip_radius > far:
+                continue
             for k, P in enumerate(pts):
                 ref = ref_pts[k] if ref_pts is not None else P
                 axis, sign, bound = _separating_face(box, ref)
@@ -89,8 +97,14 @@ class Workspace:
             d = P[2] - zt
             if d < s:
                 s = d
+        rg = self.grip_radius
         for box in self.keepout:
-            for P in pts:
+            d = _separation(box, pts[0])
+            if d - rg >= s:
+                continue  # no point of the gripper comes nearer to this box than s
+            if d < s:
+                s = d
+            for P in pts[1:]:
                 d = _separation(box, P)
                 if d < s:
                     s = d

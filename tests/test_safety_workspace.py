@@ -136,6 +136,58 @@ def test_braking_bound_is_sound(seed, keepout):
             assert sign * P[axis] <= bound + 1e-12
 
 
+def _bins():
+    """Three bins' floors and walls as keep-out boxes, laid out as the sim's pick_place cell."""
+    out = []
+    for cx in (-0.24, 0.0, 0.24):
+        x0, x1, y0, y1, w, top = cx - 0.073, cx + 0.073, 0.557, 0.723, 0.008, 0.078
+        out += [(x0, y0, 0.0, x1, y1, w), (x0, y0, w, x0 + w, y1, top), (x1 - w, y0, w, x1, y1, top),
+                (x0, y0, w, x1, y0 + w, top), (x0, y1 - w, w, x1, y1, top)]
+    return out
+
+
+@PROPS
+@given(st.integers(0, 2**32 - 1))
+def test_far_keepout_boxes_are_left_out_without_changing_a_verdict(seed):
+    """Culling boxes farther than the check's travel (min_slack, constraints(far=...)) changes no result."""
+    from sim.robot import TCP_OFFSET_Z, get_variant
+
+    from safety.workspace import _separation
+
+    limits = load_limits(None, "ur5e", {"workspace.keepout": [list(b) for b in _bins()]})
+    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
+    ws = Workspace(limits.workspace, fk)
+    rng = np.random.default_rng(seed)
+    q = HOME + rng.normal(0, 0.8, 6)
+    px, py, pz, R = fk.pose(q.tolist())
+    pts = ws.points((px, py, pz), R)
+    no_boxes = Workspace(default_limits("ur5e").workspace, fk)
+    brute = min([no_boxes.min_slack(pts)] + [_separation(b, P) for b in ws.keepout for P in pts])
+    assert ws.min_slack(pts) == brute
+    if ws.min_slack(pts) <= 0.0:
+        return
+    scale = 10.0 ** rng.uniform(-4, -0.5)
+    dlo = list(-np.abs(rng.normal(0, scale, 6)))
+    dhi = list(np.abs(rng.normal(0, scale, 6)))
+    travel = sum(r * max(h, -lo) for r, lo, h in zip(ws.reach_max, dlo, dhi))
+    full, culled = ws.constraints(pts), ws.constraints(pts, far=travel)
+    assert len(culled) <= len(full)
+    frames = fk.frames(q.tolist())
+    assert ws.braking_ok(frames, pts, full, dlo, dhi) == ws.braking_ok(frames, pts, culled, dlo, dhi)
+
+
+def test_far_keepout_boxes_are_culled_at_home():
+    from sim.robot import TCP_OFFSET_Z, get_variant
+
+    limits = load_limits(None, "ur5e", {"workspace.keepout": [list(b) for b in _bins()]})
+    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
+    ws = Workspace(limits.workspace, fk)
+    px, py, pz, R = fk.pose(HOME.tolist())
+    pts = ws.points((px, py, pz), R)
+    per_box = len(pts)
+    assert len(ws.constraints(pts)) - len(ws.constraints(pts, far=0.05)) >= 10 * per_box  # most bins are far
+
+
 def test_projection_keeps_orientation_and_lands_inside():
     _, fk, ws = _ws(keepout=True)
     rng = np.random.default_rng(3)
