@@ -46,15 +46,17 @@ class OutputCheck:
         self._cons_pts = self._cons = None
         self._cons_far = 0.0
 
-    def constraints(self, travel: float = math.inf):
+    def constraints(self, dlo=None, dhi=None):
         """Constraints at the current output's points (keep-out faces on the side the arm is on), cached.
 
-        `travel`: a bound of how far any point can move in the check at hand; keep-out boxes farther than
-        that are left out (Workspace.constraints). The list is cached with twice that reach, so the
-        bisections of one cycle reuse it."""
+        With the check's joint travel box [dlo, dhi], keep-out boxes farther than any point can move in it
+        (the Lipschitz bound braking_ok uses) are left out (Workspace.constraints). The list is cached with
+        twice that reach, so the bisections of one cycle reuse it."""
         ws, pts = self.workspace, self.stream.pts
         if not ws.keepout:
             return self._static_cons
+        travel = math.inf if dlo is None else sum(r * (h if h > -lo else -lo)
+                                                  for r, lo, h in zip(ws.reach_max, dlo, dhi))
         if pts is not self._cons_pts or travel > self._cons_far:
             far = 2.0 * travel
             self._cons = self._static_cons + ws.constraints(pts, far=far)[len(self._static_cons):]
@@ -103,9 +105,7 @@ class OutputCheck:
         st = self.stream
         dlo, dhi = self.dlo, self.dhi
         self.limiter.travel_box(x, dlo, dhi)
-        reach = self.workspace.reach_max
-        travel = sum(r * (h if h > -lo else -lo) for r, lo, h in zip(reach, dlo, dhi))
-        return self.workspace.braking_ok(st.frames, st.pts, self.constraints(travel), dlo, dhi, slack)
+        return self.workspace.braking_ok(st.frames, st.pts, self.constraints(dlo, dhi), dlo, dhi, slack)
 
     def reduce(self, res: int, out: list, now: float) -> int:
         """Largest common factor between the anchor and the candidate `out` that keeps the TCP speed caps

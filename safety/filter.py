@@ -141,17 +141,13 @@ class SafetyFilter:
         target = None
         if not stop and follow:
             target = self.shaper.target(cmd, pose_cmd, now)
-        if target is None:  # the stop policy
+        if target is None or self.collision_scale <= 0.0:
+            # The stop policy. Also for the guard's stop: its prediction bounded each joint's travel under the
+            # stop policy; tracking at zero speed would scale all joints by one common factor and let a joint
+            # headed for the contact run on while a faster one brakes. The guard's stop keeps the target as the
+            # direction the command wants, so the next check can let the arm move away.
             qn, mode = self.tracker.brake()
-            st.prev_target = None
-            vn, an = st.advance(qn)
-        elif self.collision_scale <= 0.0:
-            # The guard's stop: its prediction bounded each joint's travel under the stop policy, so brake by
-            # it. Tracking at zero speed would scale all joints by one common factor and let a joint headed
-            # for the contact run on while a faster one brakes. The target is kept as the direction the
-            # command wants, so the next check can let the arm move away.
-            qn, mode = self.tracker.brake()
-            st.prev_target = target[0]
+            st.prev_target = None if target is None else target[0]
             vn, an = st.advance(qn)
         else:
             target, pose_t, pts_t, slack_t = target

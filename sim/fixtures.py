@@ -1,10 +1,9 @@
 """The scene's fixed furniture as axis-aligned boxes, the form a cell's safety config gives its keep-out zones.
 
 Why: a real cell's bins are fixtures that the integrator measures once and declares to the safety layer
-(`workspace.keepout` in the limits file). The sim twin knows its fixtures exactly, so `sudd eval` and
-`sudd run --sim` hand them to the safety filter the same way: the finger points stay out of a bin's walls
-and the collision guard slows near them, where a pad used to press on a wall until the contact force
-stopped the arm.
+(`workspace.keepout` in the limits file). The sim twin knows its fixtures exactly, so it can declare them
+the same way: the finger points stay out of a bin's walls and the collision guard slows near them, where a
+pad used to press on a wall until the contact force stopped the arm.
 
 What counts: collision geoms of bodies welded to the world that are not the robot (the bins; a cabinet's
 carcass but not its drawer, which slides). The table is the safety layer's table plane already, and the

@@ -136,27 +136,27 @@ def test_braking_bound_is_sound(seed, keepout):
             assert sign * P[axis] <= bound + 1e-12
 
 
-def _bins():
-    """Three bins' floors and walls as keep-out boxes, laid out as the sim's pick_place cell."""
-    out = []
+def _bins_ws():
+    """(fk, workspace) with three bins' floors and walls as keep-out boxes, laid out as the sim's pick_place cell."""
+    from sim.robot import TCP_OFFSET_Z, get_variant
+
+    boxes = []
     for cx in (-0.24, 0.0, 0.24):
         x0, x1, y0, y1, w, top = cx - 0.073, cx + 0.073, 0.557, 0.723, 0.008, 0.078
-        out += [(x0, y0, 0.0, x1, y1, w), (x0, y0, w, x0 + w, y1, top), (x1 - w, y0, w, x1, y1, top),
-                (x0, y0, w, x1, y0 + w, top), (x0, y1 - w, w, x1, y1, top)]
-    return out
+        boxes += [[x0, y0, 0.0, x1, y1, w], [x0, y0, w, x0 + w, y1, top], [x1 - w, y0, w, x1, y1, top],
+                  [x0, y0, w, x1, y0 + w, top], [x0, y1 - w, w, x1, y1, top]]
+    limits = load_limits(None, "ur5e", {"workspace.keepout": boxes})
+    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
+    return fk, Workspace(limits.workspace, fk)
 
 
 @PROPS
 @given(st.integers(0, 2**32 - 1))
 def test_far_keepout_boxes_are_left_out_without_changing_a_verdict(seed):
     """Culling boxes farther than the check's travel (min_slack, constraints(far=...)) changes no result."""
-    from sim.robot import TCP_OFFSET_Z, get_variant
-
     from safety.workspace import _separation
 
-    limits = load_limits(None, "ur5e", {"workspace.keepout": [list(b) for b in _bins()]})
-    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
-    ws = Workspace(limits.workspace, fk)
+    fk, ws = _bins_ws()
     rng = np.random.default_rng(seed)
     q = HOME + rng.normal(0, 0.8, 6)
     px, py, pz, R = fk.pose(q.tolist())
@@ -177,11 +177,7 @@ def test_far_keepout_boxes_are_left_out_without_changing_a_verdict(seed):
 
 
 def test_far_keepout_boxes_are_culled_at_home():
-    from sim.robot import TCP_OFFSET_Z, get_variant
-
-    limits = load_limits(None, "ur5e", {"workspace.keepout": [list(b) for b in _bins()]})
-    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
-    ws = Workspace(limits.workspace, fk)
+    fk, ws = _bins_ws()
     px, py, pz, R = fk.pose(HOME.tolist())
     pts = ws.points((px, py, pz), R)
     per_box = len(pts)

@@ -23,12 +23,8 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # hil_tests is not installed; bare `pytest` too
-from runtime.drivers.ur_rtde_arm import (  # noqa: E402
-    ClockMap,
-    URRtdeArm,
-    URRtdeConfig,
-    frequency_for_version,
-)
+from runtime.drivers.ur_rtde_arm import ClockMap, URRtdeArm, URRtdeConfig  # noqa: E402
+from runtime.drivers.ur_version import frequency_for_version  # noqa: E402
 from sim.devices import ArmDriver, SafetyMode  # noqa: E402
 
 needs_ur_rtde = pytest.mark.skipif(importlib.util.find_spec("rtde_control") is None,

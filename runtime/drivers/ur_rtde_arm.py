@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import socket
-import struct
 import threading
 import time as _time
 from dataclasses import dataclass
@@ -38,6 +36,7 @@ from datetime import timedelta
 
 import numpy as np
 
+from runtime.drivers.ur_version import frequency_for_version, query_controller_version
 from sim.devices import (SERVO_GAIN_RANGE, SERVO_LOOKAHEAD_RANGE, ArmState, RobotMode, SafetyMode, check_scalar,
                          check_vector)
 
@@ -50,36 +49,6 @@ RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "t
 # Safety modes past sim.devices.SafetyMode (10 validate joint id, 11 undefined, 12/13 safeguard-type stops).
 _EXTRA_SAFETY = {10: SafetyMode.FAULT, 11: SafetyMode.FAULT, 12: SafetyMode.SAFEGUARD_STOP,
                  13: SafetyMode.SAFEGUARD_STOP}
-
-
-def frequency_for_version(major: int) -> float:
-    """ur_rtde's rule: a controller major version above CB3's 3 (PolyScope 5, X 10) streams at 500 Hz."""
-    return 500.0 if major > 3 else 125.0
-
-
-def query_controller_version(host: str, timeout: float, port: int = 30004) -> tuple[int, int, int, int]:
-    """(major, minor, bugfix, build) over a short RTDE session: REQUEST_PROTOCOL_VERSION 2, GET_URCONTROL_VERSION."""
-    try:
-        with socket.create_connection((host, port), timeout=timeout) as sock, sock.makefile("rb") as f:
-
-            def reply(want: int) -> bytes:
-                while True:  # skips anything else (text messages)
-                    head = f.read(3)
-                    size, cmd = struct.unpack(">HB", head) if len(head) == 3 else (3, None)
-                    body = f.read(size - 3)
-                    if cmd is None or len(body) < size - 3:
-                        raise ConnectionResetError("the controller closed the connection")
-                    if cmd == want:
-                        return body
-
-            sock.sendall(struct.pack(">HBH", 5, ord("V"), 2))
-            if reply(ord("V"))[:1] != b"\x01":
-                raise ConnectionError(f"the controller at {host}:{port} refused RTDE protocol version 2")
-            sock.sendall(struct.pack(">HB", 3, ord("v")))
-            return struct.unpack(">IIII", reply(ord("v"))[:16])
-    except OSError as exc:
-        raise ConnectionError(f"no UR controller answers RTDE at {host}:{port} ({exc}); is the robot on and "
-                              "the address right?") from exc
 
 
 @dataclass(frozen=True)
