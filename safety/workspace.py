@@ -8,6 +8,12 @@ Two jobs:
   target sweeping through a box slides along its face instead of jumping to the far side). The caller maps
   the result back to joints with IK seeded on the desired joints (same branch).
 
+Against a keep-out box the gripper is the convex hull of its points (the TCP and the finger points), not the
+points alone: it is clear of a box only when all its points lie beyond one common face of it. Points outside
+on different sides (a bin wall 8 mm thick between two fingertips 104 mm apart) are a hit, as the pads and the
+fingers' links between them would be. A common face is conservative next to a box's edge (a hull yawed past a
+corner can be clear with no face between), never optimistic.
+
 * The output. `braking_ok` proves that the commanded arm can still stop without any point leaving the
   region: the joints' travel until rest lies in a box [lo_i, hi_i] (from the stop policy's bound), and for
   each constraint n.P <= b it bounds n.P over that whole joint box by a Taylor expansion with an exact
@@ -62,10 +68,11 @@ class Workspace:
     def constraints(self, pts, ref_pts=None, far: float | None = None):
         """[(point index, axis, sign, bound)]: sign * P[axis] <= bound, for these points.
 
-        Keep-out boxes contribute, per point, the face it is most clearly outside of (in `ref_pts`, the
-        current output's points, when given), so the check follows the side the arm is on. `far` (without
-        ref_pts): leave out boxes farther than this from every point; their faces' slack exceeds it, so a
-        braking check whose Lipschitz travel is at most `far` skips them anyway.
+        Keep-out boxes contribute, for every point, the one face the gripper's hull is most clearly outside
+        of (in `ref_pts`, the current output's points, when given), so the check follows the side the arm is
+        on and keeps the whole hull there. `far` (without ref_pts): leave out boxes farther than this from
+        every point; their faces' slack exceeds it, so a braking check whose Lipschitz travel is at most
+        `far` skips them anyway.
         """
         out = []
         for axis in range(3):
@@ -77,10 +84,8 @@ class Workspace:
         for box in self.keepout:
             if cull and _separation(box, pts[0]) - self.grip_radius > far:
                 continue
-            for k, P in enumerate(pts):
-                ref = ref_pts[k] if ref_pts is not None else P
-                axis, sign, bound = _separating_face(box, ref)
-                out.append((k, axis, sign, bound))
+            axis, sign, bound = _common_face(box, ref_pts if ref_pts is not None else pts)
+            out.extend((k, axis, sign, bound) for k in range(len(pts)))
         return out
 
     def min_slack(self, pts, margin: float = 0.0) -> float:
@@ -99,15 +104,11 @@ class Workspace:
                 s = d
         rg = self.grip_radius
         for box in self.keepout:
-            d = _separation(box, pts[0])
-            if d - rg >= s:
-                continue  # no point of the gripper comes nearer to this box than s
+            if _separation(box, pts[0]) - rg >= s:
+                continue  # every point lies beyond the TCP's farthest face by more than s - rg: the hull too
+            d = _hull_separation(box, pts)
             if d < s:
                 s = d
-            for P in pts[1:]:
-                d = _separation(box, P)
-                if d < s:
-                    s = d
         return s - margin
 
     def target_ok(self, pts, tol: float = 0.0) -> bool:
@@ -132,21 +133,12 @@ class Workspace:
             moved = False
             for box in self.keepout:
                 b = (box[0] - m, box[1] - m, box[2] - m, box[3] + m, box[4] + m, box[5] + m)
-                worst = 0.0
-                face = None
-                for k, r in enumerate(rot):
-                    P = (x[0] + r[0], x[1] + r[1], x[2] + r[2])
-                    if _separation(b, P) < 0.0:
-                        ref = ref_pts[k] if ref_pts is not None else P
-                        axis, sign, bound = _separating_face(b, ref)
-                        if face is None:
-                            face = (axis, sign, bound)
-                        axis, sign, bound = face
-                        pen = sign * P[axis] - bound
-                        if pen > worst:
-                            worst = pen
-                if face is not None and worst > 0.0:
-                    axis, sign, _ = face
+                pts = [(x[0] + r[0], x[1] + r[1], x[2] + r[2]) for r in rot]
+                if _hull_separation(b, pts) >= 0.0:
+                    continue
+                axis, sign, bound = _common_face(b, ref_pts if ref_pts is not None else pts)
+                worst = max(sign * P[axis] - bound for P in pts)  # > 0: the hull is past that face
+                if worst > 0.0:
                     x[axis] -= sign * (worst + 1e-9)
                     moved = True
             if not moved and self.target_ok(self.points(tuple(x), R), _INWARD):
@@ -250,14 +242,24 @@ def _separation(box, P) -> float:
     return max(box[0] - P[0], P[0] - box[3], box[1] - P[1], P[1] - box[4], box[2] - P[2], P[2] - box[5])
 
 
-def _separating_face(box, P):
-    """(axis, sign, bound) of the box face P is most outside of: sign * P[axis] <= bound keeps P out."""
+def _hull_separation(box, pts) -> float:
+    """How far the convex hull of pts lies beyond one common face of the box (max over faces of the nearest
+    point's distance past it): > 0 clear of the box; <= 0 when no face has every point beyond it."""
+    xs, ys, zs = zip(*pts)
+    return max(box[0] - max(xs), min(xs) - box[3], box[1] - max(ys), min(ys) - box[4],
+               box[2] - max(zs), min(zs) - box[5])
+
+
+def _common_face(box, pts):
+    """(axis, sign, bound) of the box face that all of pts are most outside of (the largest distance of the
+    nearest point past it): sign * P[axis] <= bound for every point keeps their hull out of the box."""
     best, face = -math.inf, None
     for axis in range(3):
-        d = box[axis] - P[axis]  # outside the min face: P[axis] <= box_min
+        c = [P[axis] for P in pts]
+        d = box[axis] - max(c)  # beyond the min face: P[axis] <= box_min
         if d > best:
             best, face = d, (axis, 1.0, box[axis])
-        d = P[axis] - box[axis + 3]  # outside the max face: -P[axis] <= -box_max
+        d = min(c) - box[axis + 3]  # beyond the max face: -P[axis] <= -box_max
         if d > best:
             best, face = d, (axis, -1.0, -box[axis + 3])
     return face

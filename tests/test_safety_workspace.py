@@ -154,7 +154,7 @@ def _bins_ws():
 @given(st.integers(0, 2**32 - 1))
 def test_far_keepout_boxes_are_left_out_without_changing_a_verdict(seed):
     """Culling boxes farther than the check's travel (min_slack, constraints(far=...)) changes no result."""
-    from safety.workspace import _separation
+    from safety.workspace import _hull_separation
 
     fk, ws = _bins_ws()
     rng = np.random.default_rng(seed)
@@ -162,7 +162,7 @@ def test_far_keepout_boxes_are_left_out_without_changing_a_verdict(seed):
     px, py, pz, R = fk.pose(q.tolist())
     pts = ws.points((px, py, pz), R)
     no_boxes = Workspace(default_limits("ur5e").workspace, fk)
-    brute = min([no_boxes.min_slack(pts)] + [_separation(b, P) for b in ws.keepout for P in pts])
+    brute = min([no_boxes.min_slack(pts)] + [_hull_separation(b, pts) for b in ws.keepout])
     assert ws.min_slack(pts) == brute
     if ws.min_slack(pts) <= 0.0:
         return
@@ -220,3 +220,26 @@ def test_keepout_projection_uses_the_side_the_arm_is_on():
     above = ws.points(((b[0] + b[3]) / 2, (b[1] + b[4]) / 2, 0.4), R)
     p2 = ws.project(inside, R, above)
     assert p2[2] > b[5] and p2[0] == pytest.approx(inside[0])  # pushed up, towards where the arm is
+
+
+def test_a_thin_wall_between_the_fingertips_is_a_hit_and_the_target_is_pushed_to_one_side():
+    """Every point outside a bin wall 8 mm thick that passes between TCP and a fingertip is still a hit: the
+    gripper is the hull of its points, which project moves wholly to the side the arm came from."""
+    from sim.robot import TCP_OFFSET_Z, get_variant
+
+    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
+    p, R = (0.1, 0.5, 0.2), (1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)  # pointing down, fingers along x
+    wall = (0.122, 0.3, 0.0, 0.130, 0.7, 0.3)  # above the TCP, between the TCP (x 0.1) and the fingertips at x 0.152
+    limits = load_limits(None, "ur5e", {"workspace.keepout": [list(wall)]})
+    ws, free = Workspace(limits.workspace, fk), Workspace(default_limits("ur5e").workspace, fk)
+    pts = ws.points(p, R)
+    outside = [max(wall[0] - P[0], P[0] - wall[3], wall[1] - P[1], P[1] - wall[4], wall[2] - P[2], P[2] - wall[5])
+               for P in pts]
+    assert min(outside) > 0.01  # every point alone is clear of the wall ...
+    assert free.min_slack(pts) > 0.01 and ws.min_slack(pts) < -0.02  # ... the gripper is not
+    left = ws.points((0.0, 0.5, 0.2), R)  # the arm came from the -x side: the whole gripper stays there
+    fixed = ws.project(p, R, left)
+    assert fixed is not None and ws.target_ok(ws.points(fixed, R), 1e-9)
+    assert max(P[0] for P in ws.points(fixed, R)) <= wall[0] - ws.margin + 1e-9
+    (face,) = {c[1:] for c in ws.constraints(pts, left)[6 + len(pts):]}  # one face of the wall for all points
+    assert face == (0, 1.0, wall[0])
