@@ -1,4 +1,4 @@
-"""`sudd data ...`: look at a generated dataset: per-task statistics and episode contact sheets."""
+"""`sudd data ...`: look at a generated dataset (per-task statistics, episode contact sheets) or merge several."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    data = sub.add_parser("data", help="inspect a generated dataset: statistics, episode contact sheets",
+    data = sub.add_parser("data", help="inspect a generated dataset (statistics, contact sheets) or merge several",
                           description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    datasub = data.add_subparsers(dest="data_command", required=True, metavar="{info,show}")
+    datasub = data.add_subparsers(dest="data_command", required=True, metavar="{info,show,merge}")
 
     info = datasub.add_parser(
         "info", help="episodes, success rates and per-task statistics of a dataset",
@@ -36,6 +36,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     show.add_argument("--samples", type=int, default=10, help="time samples (columns) in the sheet (default: 10)")
     show.add_argument("--out", type=Path, default=None, help="output PNG (default: episode<N>.png)")
     show.set_defaults(func=_show)
+
+    merge = datasub.add_parser(
+        "merge", help="copy several datasets into one, e.g. to train on all of them",
+        description="Copy every episode of the SRC datasets into one shard of the new dataset OUT "
+                    "(OUT/shards/merged.zarr); `sudd train OUT` then sees them all. A (task, seed) pair found in "
+                    "two sources with different content is refused before anything is copied (two generations "
+                    "of the same seeds, e.g. with and without --path-noise-cm: pick one). Re-running an "
+                    "interrupted merge continues it; the merged content hash is printed (it equals the hash of "
+                    "the sources' union, whatever the sharding).",
+        epilog="example:\n  sudd data merge out/data_a out/data_b --out out/data_ab",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    merge.add_argument("sources", type=Path, nargs="+", metavar="SRC", help="dataset directories to copy from")
+    merge.add_argument("--out", type=Path, required=True, help="the merged dataset's directory")
+    merge.set_defaults(func=_merge)
 
 
 def _errors(func):
@@ -66,4 +80,30 @@ def _show(args) -> int:
 
     out = args.out or Path(f"episode{args.episode}.png")
     print(f"wrote {contact_sheet(args.dir, args.episode, out, samples=args.samples)}")
+    return 0
+
+
+@_errors
+def _merge(args) -> int:
+    from tqdm import tqdm
+
+    from datagen.store import Dataset, StoreError
+
+    sources = [Dataset(src) for src in args.sources]
+    owner: dict[tuple, tuple[str, str]] = {}  # (task, seed) -> (source, content hash)
+    for src, ds in zip(args.sources, sources):
+        if ds.root.resolve() == args.out.resolve():
+            raise StoreError(f"--out {args.out} is one of the sources: merge into a new directory")
+        for i in range(len(ds)):
+            m = ds.meta(i)
+            key, h = (m["task"], int(m["seed"])), m["_sha256"]
+            if key in owner and owner[key][1] != h:
+                raise StoreError(f"episode {key} differs between {owner[key][0]} and {src}: merge datasets of "
+                                 "different seeds, or leave one of them out")
+            owner.setdefault(key, (str(src), h))
+    with tqdm(total=sum(len(ds) for ds in sources), unit="ep", desc="merge") as bar:
+        for ds in sources:
+            ds.merge(args.out, progress=bar.update)
+    merged = Dataset(args.out)
+    print(f"{args.out}: {len(merged)} episodes from {len(sources)} dataset(s); content hash {merged.content_hash()}")
     return 0

@@ -377,10 +377,11 @@ class Dataset:
                         for m in ms})
         return hashlib.sha256((f"sudd-dataset/{SCHEMA_VERSION}\n" + "".join(lines)).encode()).hexdigest()
 
-    def merge(self, out_dir: str | Path, shard: str = "merged") -> Path:
+    def merge(self, out_dir: str | Path, shard: str = "merged", progress=None) -> Path:
         """Copy every episode into one consolidated shard OUT/shards/<shard>.zarr (readable with Dataset).
 
         Duplicated (task, seed) pairs are written once; re-running an interrupted merge continues it.
+        `progress`, if given, is called once per episode of this dataset (copied or already there).
         """
         out_dir = Path(out_dir)
         if out_dir.resolve() == self.root.resolve():
@@ -389,4 +390,6 @@ class Dataset:
             for i in range(len(self)):
                 if self._key(self.meta(i)) not in writer.keys:
                     writer.append(self.episode(i))
+                if progress is not None:
+                    progress()
         return out_dir

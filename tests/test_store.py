@@ -251,3 +251,23 @@ def test_info_table_and_contact_sheet(tmp_path, capsys):
     assert args.func(args) == 0 and json.loads(capsys.readouterr().out)["episodes"] == 5
     args = parser.parse_args(["data", "show", str(tmp_path), "--episode", "7"])
     assert args.func(args) == 2 and "out of range" in capsys.readouterr().err
+
+
+def test_data_merge_cli_joins_datasets_and_refuses_conflicting_episodes(tmp_path, capsys):
+    from runtime.cli import main
+
+    a, b, out = tmp_path / "a", tmp_path / "b", tmp_path / "ab"
+    eps_a = [random_episode("pick", s, 4) for s in range(3)]
+    eps_b = [random_episode("pick", s, 5) for s in range(3, 5)] + [eps_a[0]]  # one shared, identical episode
+    write(a, "w0", eps_a)
+    write(b, "w0", eps_b)
+    assert main(["data", "merge", str(a), str(b), "--out", str(out)]) == 0
+    merged = Dataset(out)
+    assert len(merged) == 5 and merged.completed_keys() == {("pick", s) for s in range(5)}
+    assert merged.content_hash() in capsys.readouterr().out
+    c = tmp_path / "c"
+    write(c, "w0", [random_episode("pick", 1, 7)])  # seed 1 again, other content
+    assert main(["data", "merge", str(a), str(c), "--out", str(tmp_path / "ac")]) == 2
+    assert "('pick', 1) differs" in capsys.readouterr().err
+    assert not (tmp_path / "ac").exists()
+    assert main(["data", "merge", str(a), "--out", str(a)]) == 2
