@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
+import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -119,13 +121,19 @@ def _eval(args) -> int:
     t0 = time.perf_counter()
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="eval", unit="ep")
     wins = {"policy": 0, "collector": 0}
-    with results_path.open("a") as f:
-        for rec in _run_jobs(todo, settings, args.workers):
-            f.write(json.dumps(rec) + "\n")
-            f.flush()
-            wins[rec["who"]] += bool(rec["success"])
-            bar.update(1)
-            bar.set_postfix(policy_ok=wins["policy"], collector_ok=wins["collector"])
+    try:
+        with results_path.open("a") as f:
+            for rec in _run_jobs(todo, settings, args.workers):
+                f.write(json.dumps(rec) + "\n")
+                f.flush()
+                wins[rec["who"]] += bool(rec["success"])
+                bar.update(1)
+                bar.set_postfix(policy_ok=wins["policy"], collector_ok=wins["collector"])
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"interrupted: {bar.n} of {len(jobs)} episodes are in {results_path}; run the same command again to "
+              "run the rest and write the tables", file=sys.stderr)
+        return 130
     bar.close()
     wanted = {key(j) for j in jobs}
     records = [r for r in _read(results_path) if key(r) in wanted]
@@ -173,11 +181,16 @@ def _run_jobs(jobs: list[dict], settings: dict, workers: int):
         return
     import multiprocessing as mp
 
-    with mp.get_context("spawn").Pool(workers, initializer=_init, initargs=(settings,)) as pool:
+    with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(settings,)) as pool:
         yield from pool.imap_unordered(_job, jobs)
 
 
 _WORKER: dict = {}
+
+
+def _init_worker(settings: dict) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it stops the pool and keeps the results
+    _init(settings)
 
 
 def _init(settings: dict) -> None:

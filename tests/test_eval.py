@@ -393,3 +393,33 @@ def test_eval_cli_refuses_heldout_without_a_holdout(untrained_bundle, tmp_path, 
 
     assert main(["eval", "--policy", str(untrained_bundle), "--suite", "heldout", "--out", str(tmp_path)]) == 2
     assert "--holdout-color" in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_an_evaluation_cleanly_and_keeps_its_finished_episodes(tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while worker processes run episodes: no
+    worker traceback, exit code 130, a message saying where the results are, every finished episode kept."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "ev"
+    cmd = [sys.executable, "-c", "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))", "eval",
+           "--policy", "policy/bundles/demo", "--task", "pick_place", "--episodes", "12", "--no-collector",
+           "--time-limit-factor", "0.1", "--latency-ms", "6", "--workers", "2", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    results = out / "results.jsonl"
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        if results.is_file() and results.read_text().count("\n") >= 1:
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "interrupted" in stderr and str(results) in stderr and "Traceback" not in stderr, stderr
+    lines = results.read_text().splitlines()
+    assert 1 <= len(lines) < 12 and all(json.loads(x)["who"] == "policy" for x in lines)
+    assert not (out / "summary.json").exists()

@@ -7,6 +7,8 @@
 # the bundle's git-ignored text encoder (BUNDLE/text_encoder.onnx, BUNDLE/tokenizer).
 set -u
 B=$1; N=$2; S=$3; LEFT=$4; shift 4
+# the cores before OMP_NUM_THREADS is set: GNU nproc reports that variable when it is set (1 on the first lease)
+W=${WORKERS:-$(( $(nproc) - 1 ))}
 export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl OMP_NUM_THREADS=1
 PY=${PY:-python3}  # a dry run here: PY=.venv/bin/python (no GPU: the set-up below is skipped)
 if command -v nvidia-smi >/dev/null; then
@@ -18,7 +20,6 @@ fi
 OUTDIR=${OUT:-out/lease}/eval
 $PY -c "import mujoco, onnxruntime, tokenizers; print('mujoco', mujoco.__version__, 'onnxruntime', onnxruntime.__version__)" \
     || exit 4
-W=${WORKERS:-$(( $(nproc) - 1 ))}
 timeout -s INT "$LEFT" $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" eval \
     --policy "$B" --task pick_place --episodes "$N" --seed-offset "$S" --no-collector --workers "$W" --out "$OUTDIR" \
     "$@" 2>&1 | tr '\r' '\n' | grep -v '^$' | awk 'NR % 20 == 0 || /Error|error|success/' | tail -40
