@@ -5,7 +5,7 @@ Why: the approach views never show the arm carrying, so the pretrained encoder f
 grasp (2.4 cm) but not the bin after it: on carrying frames of unseen episodes its release point is 13.5 cm
 off, and in closed loop the shipped policy circles 4-11 cm around the bin's centre and lets go over its rim
 (20 of its 42 failures on 120 evaluation seeds). Measured: with 2000 scenes x 4 of these views the release
-point is 7.0 cm off, yet the policy trained on them places no better (README, "Carrying views").
+point is 7.0 cm off, yet the policy trained on them places no better (policy/EXPERIMENTS.md, "Carrying views").
 
 A scene is grasped once with physics (the arm teleported to the collector's top-down grasp pose, fingers
 closed for 0.6 s of simulation, kept only if both pads touch the object); then, for each view, the arm is
