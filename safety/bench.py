@@ -11,6 +11,10 @@
   the median over ADVERSARIAL_RUNS runs (chain_limited is the first); `ik_fallback_events` counts the
   episodes where the bounded IK found no target and the stop policy was followed instead. Its target: a
   hostile stream must not make the filter overrun the 2 ms cycle (CPU p99 <= 300 us, max <= 1 ms).
+* chain_cell: the realistic stream in a cell with three bins declared as keep-out boxes (a floor and four
+  walls each, 15 boxes, as the sim's pick_place cell declares them), set under the stream's path with their
+  rims 4 cm under its lowest finger point, so the nearest bin is checked every cycle; `over_chain_p50` is its
+  p50 over the bin-free chain's, measured in the same run.
 * collision: `CollisionGuard.check` (current + predicted pose), at poses along the realistic stream.
 
 Times are time.perf_counter_ns around the call (wall clock: what the control loop sees, including any
@@ -51,6 +55,20 @@ def realistic_stream(n: int, dt: float = CYCLE_S, seed: int = 0) -> np.ndarray:
         w = 2 * np.pi * rng.uniform(0.1, 0.25)
         q += ((1 - np.cos(w * t)) ** 2 / 4)[:, None] * amp
     return q
+
+
+def bin_keepout(cx: float, y0: float, y1: float, floor_z: float, width: float = 0.146, wall: float = 0.008,
+                height: float = 0.078) -> list[list[float]]:
+    """One open bin as five keep-out boxes [xmin, ymin, zmin, xmax, ymax, zmax]: its floor and four walls."""
+    x0, x1, top = cx - width / 2, cx + width / 2, floor_z + height
+    return [[x0, y0, floor_z, x1, y1, floor_z + wall], [x0, y0, floor_z + wall, x0 + wall, y1, top],
+            [x1 - wall, y0, floor_z + wall, x1, y1, top], [x0, y0, floor_z + wall, x1, y0 + wall, top],
+            [x0, y1 - wall, floor_z + wall, x1, y1, top]]
+
+
+# Under the realistic stream (its TCP within x -0.17..-0.13, y 0.39..0.52; finger points down to z 0.24): the
+# middle bin under the path, its rim at z 0.20.
+BENCH_BINS = [box for cx in (-0.395, -0.155, 0.085) for box in bin_keepout(cx, 0.37, 0.536, 0.122)]
 
 
 def adversarial_stream(n: int, seed: int = 1) -> list:
@@ -145,7 +163,7 @@ def run_safety_bench(quick: bool = False) -> dict:
     import warnings
 
     from safety.filter import SafetyFilter
-    from safety.limits import default_limits
+    from safety.limits import default_limits, load_limits
 
     warnings.simplefilter("ignore", UserWarning)
     limits = default_limits("ur5e")
@@ -165,6 +183,12 @@ def run_safety_bench(quick: bool = False) -> dict:
     chain["p50_cycle_fraction"] = round(chain["p50_us"] * 1e-6 / dt, 5)
     chain["p99_cycle_fraction"] = round(chain["p99_us"] * 1e-6 / dt, 5)
     figures["chain"] = chain
+    cell_limits = load_limits(None, "ur5e", {"workspace.keepout": BENCH_BINS})
+    cell, pass_frac = _time_chain(SafetyFilter(cell_limits, collision=False), realistic_stream(n), dt)
+    cell.update(boxes=len(BENCH_BINS), pass_fraction=round(pass_frac, 4),
+                p99_cycle_fraction=round(cell["p99_us"] * 1e-6 / dt, 5),
+                over_chain_p50=round(cell["p50_us"] / chain["p50_us"], 3))
+    figures["chain_cell"] = cell
     figures["chain_limited"], adv = _adversarial(limits, n // 4, 2 if quick else ADVERSARIAL_RUNS, dt)
     figures["chain_adversarial"] = adv
 

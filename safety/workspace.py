@@ -44,9 +44,6 @@ class Workspace:
         reach = fk.axis_reach
         self.reach = tuple(tuple(r + math.sqrt(sum(x * x for x in off)) for r in reach) for off in self.offsets)
         self.reach_max = tuple(max(r[i] for r in self.reach) for i in range(len(reach)))
-        # every gripper point lies within this of the TCP: a box this much farther from the TCP than a bound
-        # is farther than that bound from every point (the separation is 1-Lipschitz), so it can be skipped
-        self.grip_radius = max(math.sqrt(sum(x * x for x in off)) for off in self.offsets)
         self._g_key: tuple = (None, None)  # (frames, points) the cached gradients belong to
         self._g: dict = {}
 
@@ -80,9 +77,10 @@ class Workspace:
             out.append((0, axis, 1.0, self.bmax[axis]))
         for k in range(len(pts)):
             out.append((k, 2, -1.0, -self.zt))
-        cull = far is not None and ref_pts is None
+        cull = far is not None and ref_pts is None and self.keepout
+        a = _aabb(pts) if cull else None
         for box in self.keepout:
-            if cull and _separation(box, pts[0]) - self.grip_radius > far:
+            if cull and _box_gap(box, a) > far:
                 continue
             axis, sign, bound = _common_face(box, ref_pts if ref_pts is not None else pts)
             out.extend((k, axis, sign, bound) for k in range(len(pts)))
@@ -102,13 +100,13 @@ class Workspace:
             d = P[2] - zt
             if d < s:
                 s = d
-        rg = self.grip_radius
-        for box in self.keepout:
-            if _separation(box, pts[0]) - rg >= s:
-                continue  # every point lies beyond the TCP's farthest face by more than s - rg: the hull too
-            d = _hull_separation(box, pts)
-            if d < s:
-                s = d
+        if self.keepout:
+            # the hull's gap to a box is its bounding box's: one pass over the points serves every box
+            xlo, ylo, zlo, xhi, yhi, zhi = _aabb(pts)
+            for b in self.keepout:
+                d = max(b[0] - xhi, xlo - b[3], b[1] - yhi, ylo - b[4], b[2] - zhi, zlo - b[5])
+                if d < s:
+                    s = d
         return s - margin
 
     def target_ok(self, pts, tol: float = 0.0) -> bool:
@@ -237,17 +235,22 @@ class Workspace:
         return out
 
 
-def _separation(box, P) -> float:
-    """Signed distance-like separation of P from a box: > 0 outside (max over faces), < 0 inside."""
-    return max(box[0] - P[0], P[0] - box[3], box[1] - P[1], P[1] - box[4], box[2] - P[2], P[2] - box[5])
+def _aabb(pts) -> tuple:
+    """(xmin, ymin, zmin, xmax, ymax, zmax) of the points."""
+    xs, ys, zs = zip(*pts)
+    return min(xs), min(ys), min(zs), max(xs), max(ys), max(zs)
+
+
+def _box_gap(box, a) -> float:
+    """How far the axis-aligned box `a` lies beyond one face of `box` (> 0 clear, <= 0 overlapping)."""
+    return max(box[0] - a[3], a[0] - box[3], box[1] - a[4], a[1] - box[4], box[2] - a[5], a[2] - box[5])
 
 
 def _hull_separation(box, pts) -> float:
     """How far the convex hull of pts lies beyond one common face of the box (max over faces of the nearest
-    point's distance past it): > 0 clear of the box; <= 0 when no face has every point beyond it."""
-    xs, ys, zs = zip(*pts)
-    return max(box[0] - max(xs), min(xs) - box[3], box[1] - max(ys), min(ys) - box[4],
-               box[2] - max(zs), min(zs) - box[5])
+    point's distance past it): > 0 clear of the box; <= 0 when no face has every point beyond it. The nearest
+    point past a face is an extreme of the points along its axis, so this is the points' bounding box's gap."""
+    return _box_gap(box, _aabb(pts))
 
 
 def _common_face(box, pts):

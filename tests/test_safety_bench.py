@@ -52,6 +52,8 @@ def test_quick_bench_reports_the_figures():
     assert figures["chain"]["pass_fraction"] > 0.99  # the realistic stream passes unchanged
     assert 0 < figures["chain"]["p99_cycle_fraction"] < 1
     assert set(figures["meets_targets"]) == {"chain", "chain_adversarial", "collision"}
+    cell = figures["chain_cell"]
+    assert cell["boxes"] == 15 and cell["pass_fraction"] > 0.99 and cell["over_chain_p50"] > 0
     adv = figures["chain_adversarial"]
     assert adv["runs"] >= 2 and len(adv["per_run"]) == adv["runs"]
     assert 0 < adv["cpu_p50_us"] <= adv["cpu_p99_us"] <= adv["cpu_max_us"] <= adv["cpu_max_us_worst_run"]
@@ -79,3 +81,24 @@ def test_filter_runs_at_each_variant_rate(variant):
 
     f = SafetyFilter(default_limits(variant), collision=False)
     assert f.dt == pytest.approx(0.002 if variant == "ur5e" else 0.008)
+
+
+def test_the_bench_cell_bins_lie_just_under_the_stream():
+    """chain_cell measures the cost of a bin near the gripper: along the whole realistic stream the nearest of
+    its boxes is the nearest limit of the workspace (before the table and the box), never hit, 4 cm at the
+    closest."""
+    from safety.bench import BENCH_BINS, realistic_stream
+    from safety.fastfk import FastKinematics
+    from safety.limits import load_limits
+    from safety.workspace import Workspace, _hull_separation
+    from sim.robot import TCP_OFFSET_Z, get_variant
+
+    fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
+    ws = Workspace(load_limits(None, "ur5e", {"workspace.keepout": BENCH_BINS}).workspace, fk)
+    gaps = []
+    for q in realistic_stream(20000)[::50]:
+        px, py, pz, R = fk.pose(q.tolist())
+        pts = ws.points((px, py, pz), R)
+        gaps.append(min(_hull_separation(b, pts) for b in ws.keepout))
+        assert ws.min_slack(pts) == gaps[-1]  # the bin is the nearest limit
+    assert 0.03 < min(gaps) < 0.05

@@ -153,7 +153,8 @@ def _bins_ws():
 @PROPS
 @given(st.integers(0, 2**32 - 1))
 def test_far_keepout_boxes_are_left_out_without_changing_a_verdict(seed):
-    """Culling boxes farther than the check's travel (min_slack, constraints(far=...)) changes no result."""
+    """min_slack is the brute minimum over the boxes, and culling boxes farther than the braking check's travel
+    (constraints(far=...)) changes no verdict."""
     from safety.workspace import _hull_separation
 
     fk, ws = _bins_ws()
