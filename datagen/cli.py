@@ -41,8 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "merge", help="copy several datasets into one, e.g. to train on all of them",
         description="Copy every episode of the SRC datasets into one shard of the new dataset OUT "
                     "(OUT/shards/merged.zarr); `sudd train OUT` then sees them all. A (task, seed) pair found in "
-                    "two sources with different content is refused before anything is copied (two generations "
-                    "of the same seeds, e.g. with and without --path-noise-cm: pick one). Re-running an "
+                    "two sources, or in a source and an existing OUT, with different content is refused before "
+                    "anything is copied (two generations of the same seeds, e.g. with and without "
+                    "--path-noise-cm: pick one). Re-running an "
                     "interrupted merge continues it; the merged content hash is printed (it equals the hash of "
                     "the sources' union, whatever the sharding).",
         epilog="example:\n  sudd data merge out/data_a out/data_b --out out/data_ab",
@@ -87,13 +88,15 @@ def _show(args) -> int:
 def _merge(args) -> int:
     from tqdm import tqdm
 
-    from datagen.store import Dataset, StoreError
+    from datagen.store import Dataset, StoreError, shard_dir
 
     sources = [Dataset(src) for src in args.sources]
+    if any(ds.root.resolve() == args.out.resolve() for ds in sources):
+        raise StoreError(f"--out {args.out} is one of the sources: merge into a new directory")
+    # an existing --out (a merge continued, or more datasets added to it) takes part in the check too
+    there = [(f"--out {args.out}", Dataset(args.out))] if shard_dir(args.out).is_dir() else []
     owner: dict[tuple, tuple[str, str]] = {}  # (task, seed) -> (source, content hash)
-    for src, ds in zip(args.sources, sources):
-        if ds.root.resolve() == args.out.resolve():
-            raise StoreError(f"--out {args.out} is one of the sources: merge into a new directory")
+    for src, ds in there + list(zip(args.sources, sources)):
         for i in range(len(ds)):
             m = ds.meta(i)
             key, h = (m["task"], int(m["seed"])), m["_sha256"]

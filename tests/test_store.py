@@ -270,4 +270,7 @@ def test_data_merge_cli_joins_datasets_and_refuses_conflicting_episodes(tmp_path
     assert main(["data", "merge", str(a), str(c), "--out", str(tmp_path / "ac")]) == 2
     assert "('pick', 1) differs" in capsys.readouterr().err
     assert not (tmp_path / "ac").exists()
+    assert main(["data", "merge", str(c), "--out", str(out)]) == 2  # conflicts with what --out holds already
+    assert "('pick', 1) differs" in capsys.readouterr().err
+    assert Dataset(out).content_hash() == merged.content_hash()
     assert main(["data", "merge", str(a), "--out", str(a)]) == 2
