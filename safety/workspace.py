@@ -67,9 +67,9 @@ class Workspace:
 
         Keep-out boxes contribute, for every point, the one face the gripper's hull is most clearly outside
         of (in `ref_pts`, the current output's points, when given), so the check follows the side the arm is
-        on and keeps the whole hull there. `far` (without ref_pts): leave out boxes farther than this from
-        every point; their faces' slack exceeds it, so a braking check whose Lipschitz travel is at most
-        `far` skips them anyway.
+        on and keeps the whole hull there. `far` (without ref_pts): leave out boxes the hull lies more than
+        this beyond; their common face's slack exceeds it for every point, so a braking check whose Lipschitz
+        travel is at most `far` skips them anyway.
         """
         out = []
         for axis in range(3):
