@@ -50,7 +50,7 @@ $(VENV)/.installed: pyproject.toml | system-deps
 
 # The main job on the embedded default: the whole runtime stack (robot node with the sim twins, policy node
 # with the shipped bundle, real Zenoh sessions) on a held-out pick_place episode under heavy randomization;
-# it prints the task's success and the latency figures. The shipped policy completes 311/360 held-out episodes,
+# it prints the task's success and the latency figures. The shipped policy completes 412/480 held-out episodes,
 # seed 100003 among them; success there depends on the sampler's noise (an earlier policy completed it about
 # every other try), so expect a failure now and then. Any seed from 100000 up is held out from
 # training: `make demo DEMO_SEED=100010`. The scripted oracles: `sudd sim demo`.
