@@ -88,25 +88,12 @@ def _show(args) -> int:
 def _merge(args) -> int:
     from tqdm import tqdm
 
-    from datagen.store import Dataset, StoreError, shard_dir
+    from datagen.merge import merge_datasets
+    from datagen.store import Dataset
 
     sources = [Dataset(src) for src in args.sources]
-    if any(ds.root.resolve() == args.out.resolve() for ds in sources):
-        raise StoreError(f"--out {args.out} is one of the sources: merge into a new directory")
-    # an existing --out (a merge continued, or more datasets added to it) takes part in the check too
-    there = [(f"--out {args.out}", Dataset(args.out))] if shard_dir(args.out).is_dir() else []
-    owner: dict[tuple, tuple[str, str]] = {}  # (task, seed) -> (source, content hash)
-    for src, ds in there + list(zip(args.sources, sources)):
-        for i in range(len(ds)):
-            m = ds.meta(i)
-            key, h = (m["task"], int(m["seed"])), m["_sha256"]
-            if key in owner and owner[key][1] != h:
-                raise StoreError(f"episode {key} differs between {owner[key][0]} and {src}: merge datasets of "
-                                 "different seeds, or leave one of them out")
-            owner.setdefault(key, (str(src), h))
     with tqdm(total=sum(len(ds) for ds in sources), unit="ep", desc="merge") as bar:
-        for ds in sources:
-            ds.merge(args.out, progress=bar.update)
-    merged = Dataset(args.out)
-    print(f"{args.out}: {len(merged)} episodes from {len(sources)} dataset(s); content hash {merged.content_hash()}")
+        merged = merge_datasets(sources, args.out, progress=bar.update)
+    print(f"{args.out}: {len(merged)} episodes from {len(args.sources)} dataset(s); content hash "
+          f"{merged.content_hash()}")
     return 0

@@ -102,6 +102,7 @@ class Workspace:
                 s = d
         if self.keepout:
             # the hull's gap to a box is its bounding box's: one pass over the points serves every box
+            # (_box_gap written out: this runs every cycle, for every box)
             xlo, ylo, zlo, xhi, yhi, zhi = _aabb(pts)
             for b in self.keepout:
                 d = max(b[0] - xhi, xlo - b[3], b[1] - yhi, ylo - b[4], b[2] - zhi, zlo - b[5])

@@ -138,13 +138,10 @@ def test_braking_bound_is_sound(seed, keepout):
 
 def _bins_ws():
     """(fk, workspace) with three bins' floors and walls as keep-out boxes, laid out as the sim's pick_place cell."""
+    from safety.bench import bin_keepout
     from sim.robot import TCP_OFFSET_Z, get_variant
 
-    boxes = []
-    for cx in (-0.24, 0.0, 0.24):
-        x0, x1, y0, y1, w, top = cx - 0.073, cx + 0.073, 0.557, 0.723, 0.008, 0.078
-        boxes += [[x0, y0, 0.0, x1, y1, w], [x0, y0, w, x0 + w, y1, top], [x1 - w, y0, w, x1, y1, top],
-                  [x0, y0, w, x1, y0 + w, top], [x0, y1 - w, w, x1, y1, top]]
+    boxes = [box for cx in (-0.24, 0.0, 0.24) for box in bin_keepout(cx, 0.557, 0.723, 0.0)]
     limits = load_limits(None, "ur5e", {"workspace.keepout": boxes})
     fk = FastKinematics(get_variant("ur5e"), TCP_OFFSET_Z)
     return fk, Workspace(limits.workspace, fk)

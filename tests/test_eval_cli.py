@@ -1,0 +1,110 @@
+"""`sudd eval` on the command line: results written and resumed, its options passed to the episodes, bad
+arguments refused, Ctrl-C keeping what finished."""
+
+import json
+
+import pytest
+
+
+def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
+    from runtime.cli import main
+
+    args = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1",
+            "--time-limit-factor", "0.03", "--suite", "seen", "--suite", "paraphrase", "--out", str(tmp_path)]
+    assert main(args) == 0
+    lines = (tmp_path / "results.jsonl").read_text().splitlines()
+    got = sorted((json.loads(x)["suite"], json.loads(x)["who"]) for x in lines)
+    assert got == [("paraphrase", "policy"), ("seen", "collector"), ("seen", "policy")]
+    para = next(json.loads(x) for x in lines if json.loads(x)["suite"] == "paraphrase")
+    assert para["command"] != para["instruction"]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert {r["who"] for r in summary["rows"]} == {"policy", "collector"}
+    md = (tmp_path / "results.md").read_text()
+    assert "| seen | pick_place | 0/1" in md and "| paraphrase | pick_place | 0/1" in md
+    assert "Why the policy failed" in md
+    assert (tmp_path / "success.png").stat().st_size > 1000
+    assert main(args) == 0  # resumed: nothing left to run, nothing appended
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
+
+
+@pytest.fixture
+def episode_kwargs(monkeypatch) -> list[dict]:
+    """The keyword arguments of every run_policy_episode call the eval CLI makes (the episodes still run)."""
+    import runtime.evaluate
+
+    seen, real = [], runtime.evaluate.run_policy_episode
+
+    def spy(*args, **kw):
+        seen.append(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(runtime.evaluate, "run_policy_episode", spy)
+    return seen
+
+
+def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, tmp_path, episode_kwargs):
+    from runtime.cli import main
+
+    toml = tmp_path / "hold.toml"
+    toml.write_text("gripper_min_hold = 0.6\n")
+    out = tmp_path / "eval"
+    assert main(["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
+                 "--time-limit-factor", "0.03", "--controller", str(toml), "--out", str(out)]) == 0
+    assert [kw["controller"].gripper_min_hold for kw in episode_kwargs] == [0.6]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["controller"]["gripper_min_hold"] == 0.6
+
+
+def test_eval_cli_passes_a_fixed_latency_and_filmstrips_and_refuses_a_negative_latency(untrained_bundle, tmp_path,
+                                                                                          episode_kwargs, capsys):
+    from runtime.cli import main
+
+    base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
+            "--time-limit-factor", "0.03"]
+    assert main([*base, "--latency-ms", "6", "--filmstrips", "--out", str(tmp_path / "a")]) == 0
+    assert main([*base, "--out", str(tmp_path / "b")]) == 0
+    assert [kw["latency_s"] for kw in episode_kwargs] == [0.006, None]
+    (a,), (b,) = (map(json.loads, (tmp_path / d / "results.jsonl").read_text().splitlines()) for d in "ab")
+    assert not a["success"] and a["filmstrip"] == str(tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png")
+    assert (tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png").stat().st_size > 1000
+    assert "filmstrip" not in b and not (tmp_path / "b" / "filmstrips").exists()
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["settings"]["latency_ms"] == 6.0
+    assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2
+    assert "--latency-ms -1.0: expected 0 <= MS < 1000" in capsys.readouterr().err
+
+
+def test_eval_cli_refuses_heldout_without_a_holdout(untrained_bundle, tmp_path, capsys):
+    from runtime.cli import main
+
+    assert main(["eval", "--policy", str(untrained_bundle), "--suite", "heldout", "--out", str(tmp_path)]) == 2
+    assert "--holdout-color" in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_an_evaluation_cleanly_and_keeps_its_finished_episodes(tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while worker processes run episodes: no
+    worker traceback, exit code 130, a message saying where the results are, every finished episode kept."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "ev"
+    cmd = [sys.executable, "-c", "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))", "eval",
+           "--policy", "policy/bundles/demo", "--task", "pick_place", "--episodes", "12", "--no-collector",
+           "--time-limit-factor", "0.1", "--latency-ms", "6", "--workers", "2", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    results = out / "results.jsonl"
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        if results.is_file() and results.read_text().count("\n") >= 1:
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "interrupted" in stderr and str(results) in stderr and "Traceback" not in stderr, stderr
+    lines = results.read_text().splitlines()
+    assert 1 <= len(lines) < 12 and all(json.loads(x)["who"] == "policy" for x in lines)
+    assert not (out / "summary.json").exists()
