@@ -23,18 +23,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog="examples:\n  sudd train out/data --out runs/pp --steps 2000\n"
                "  sudd train out/data --out runs/pp --config full --epochs 100 --device cuda\n"
                "  sudd train out/data --out runs/pp --steps 2000 --nproc 2          # DDP (gloo on CPU)\n"
-               "  sudd train out/data --out runs/pp --steps 500 --set batch_size=32 --set include_failures=true")
+               "  sudd train out/data --out runs/pp --steps 500 --set batch_size=32 --set include_failures=true\n"
+               "  sudd train out/mydata --out runs/ft --steps 3000 --config policy/bundles/demo \\\n"
+               "      --init-from policy/bundles/demo        # fine-tune the shipped policy on your episodes")
     tr.add_argument("data", type=Path, help="episode dataset directory (sudd datagen --out)")
     tr.add_argument("--out", type=Path, required=True, help="run directory")
-    tr.add_argument("--config", default="small", help="preset small|full or a TOML file (default small)")
+    tr.add_argument("--config", default="small", help=(
+        "preset small|full, a TOML file, or a bundle directory (its training config) (default small)"))
     length = tr.add_mutually_exclusive_group(required=True)
     length.add_argument("--steps", type=int, help="optimizer steps in the schedule")
     length.add_argument("--epochs", type=int, help="passes over the samples")
     tr.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
     tr.add_argument("--fresh", action="store_true", help="start over instead of resuming")
-    tr.add_argument("--init-from", type=Path, metavar="RUN", help=(
+    tr.add_argument("--init-from", type=Path, metavar="RUN|BUNDLE", help=(
         "warm-start a new run from RUN's latest EMA weights and stats (equal tensors copied, a grown "
-        "conditioning input zero-initialized; see policy.warm_start); ignored when resuming"))
+        "conditioning input zero-initialized; see policy.warm_start), or from an exported BUNDLE's weights "
+        "rebuilt from its graphs (e.g. policy/bundles/demo, to fine-tune the shipped policy); ignored when "
+        "resuming"))
     tr.add_argument("--device", default="auto", help="auto|cpu|cuda|cuda:N (default auto)")
     tr.add_argument("--nproc", type=int, default=1, help="processes for DistributedDataParallel (torchrun)")
     tr.add_argument("--threads", type=int, metavar="N", help=(

@@ -239,7 +239,8 @@ def preset(name: str) -> PolicyConfig:
 
 def load_policy_config(spec_: str | Path | PolicyConfig | dict | None = None, overrides: dict | None = None
                        ) -> PolicyConfig:
-    """A preset name, a TOML file (its optional `preset` key names the base), a dict, or a config."""
+    """A preset name, a TOML file (its optional `preset` key names the base), an exported bundle's directory
+    (the config it was trained with, from its manifest: to fine-tune it), a dict, or a config."""
     if isinstance(spec_, PolicyConfig):
         base, data = spec_, {}
     elif spec_ is None or str(spec_) in PRESETS:
@@ -247,10 +248,15 @@ def load_policy_config(spec_: str | Path | PolicyConfig | dict | None = None, ov
     elif isinstance(spec_, dict):
         data = dict(spec_)
         base = preset(data.get("preset", "small"))
+    elif (Path(spec_) / "manifest.json").is_file():
+        import json
+
+        data, base = json.loads((Path(spec_) / "manifest.json").read_text())["config"], preset("small")
+        return load_config(PolicyConfig, _merge(data, overrides), where=f"{spec_}/manifest.json", base=base)
     else:
         path = Path(spec_)
         if path.suffix != ".toml":
-            raise ConfigError(f"policy config {spec_!r}: expected a preset {list(PRESETS)} or a .toml file")
+            raise ConfigError(f"policy config {spec_!r}: expected a preset {list(PRESETS)}, a .toml file or a bundle directory")
         if not path.is_file():
             raise ConfigError(f"policy config file {path} does not exist")
         import tomllib

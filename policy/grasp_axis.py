@@ -47,15 +47,23 @@ def axis_label(grasp_yaw, tcp_yaw, axis: bool | np.ndarray) -> np.ndarray:
     return (label * np.asarray(axis, np.float64)[..., None]).astype(np.float32)
 
 
+# the task_record param naming the object an episode picks up, per family that picks one up
+PICKED = {"pick_place": "target", "drawer_put": "target", "stack": "top"}
+
+
 def episode_target_has_axis(meta: dict) -> bool:
-    """Whether a recorded episode's named object (its task_record) has a grasp axis."""
+    """Whether a recorded episode's picked-up object (its task_record) has a grasp axis. A family that picks
+    up no object (drawer_open, drawer_close: the handle is part of the cabinet) has none: label (0, 0)."""
     record = meta.get("task_record") or {}
-    target = (record.get("params") or {}).get("target")
+    task = record.get("family", meta.get("task"))
+    if task is not None and task not in PICKED:
+        return False
+    target = (record.get("params") or {}).get(PICKED.get(task, "target"))
     for o in record.get("objects", ()):
         if o.get("name") == target:
             return has_axis(SimpleNamespace(shape=o["shape"], size=o["size"]))
-    raise ValueError(f"episode seed {meta.get('seed')}: its task_record names no target object with a shape, so "
-                     "no grasp-axis label; aux_grasp_axis needs pick_place data recorded with task records")
+    raise ValueError(f"episode seed {meta.get('seed')}: its task_record names no picked-up object with a shape, so "
+                     "no grasp-axis label; aux_grasp_axis needs data recorded with task records")
 
 
 def angle_error_deg(pred: np.ndarray, want: np.ndarray) -> np.ndarray:

@@ -356,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--epochs", type=int, default=None)
     p.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="override a config field")
     p.add_argument("--fresh", action="store_true", help="do not resume; start the run over")
-    p.add_argument("--init-from", default=None, help="warm-start a new run from this run (policy.warm_start)")
+    p.add_argument("--init-from", default=None, help="warm-start a new run from this run or bundle (policy.warm_start)")
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)

@@ -10,6 +10,10 @@ From a `sudd pretrain` run (its dataset.json says "pretrain") only the PRETRAINE
 whatever the rest's shapes: the rest of such a run never trained, so a policy with another observation
 horizon can start from it.
 
+The source may also be an exported bundle (a directory with manifest.json, such as policy/bundles/demo): its
+weights are rebuilt from its ONNX graphs (policy.bundle_import, checked against the bundle before use) and
+taken whole, as from a run's checkpoint.
+
 The new run also takes the source's normalization stats, so the copied weights see the inputs they were
 trained on; the source, its checkpoint and what grew are recorded in RUN/warm_start.json (and the bundle's
 manifest, under training).
@@ -46,12 +50,33 @@ def source_normalizer(source_run: str | Path) -> Normalizer:
 
 def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
     """Copy the source run's EMA weights into `model` (see the module docstring); returns the record."""
+    from policy.bundle_import import is_bundle
+
+    if is_bundle(source_run):
+        old, record = _from_bundle(source_run)
+        return {**record, **_copy_into(model, old, Path(source_run) / "manifest.json")}
     path = source_checkpoint(source_run)
     state = torch.load(path, map_location="cpu", weights_only=False)
     old = state["ema"]["model"]
     info = Path(source_run) / "dataset.json"
     if info.is_file() and "pretrain" in json.loads(info.read_text()):
         old = {k: v for k, v in old.items() if k.startswith(tuple(p + "." for p in PRETRAINED))}
+    return {"source": str(source_run), "checkpoint": str(path), "step": int(state["step"]),
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path)}
+
+
+def _from_bundle(bundle_dir: str | Path) -> tuple[dict, dict]:
+    from policy.bundle_import import model_from_bundle
+
+    source, _, manifest = model_from_bundle(bundle_dir)
+    path = Path(bundle_dir) / "manifest.json"
+    return source.state_dict(), {
+        "source": str(bundle_dir), "bundle": True, "step": int(manifest.get("training", {}).get("step", 0)),
+        "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "parity": manifest["imported"]["parity"]}
+
+
+def _copy_into(model: torch.nn.Module, old: dict, path: Path) -> dict:
+    """Copy `old` into `model` (equal shapes; a Linear's inputs may grow); what grew and what is new."""
     new = model.state_dict()
     extra = sorted(set(old) - set(new))
     if extra:
@@ -71,8 +96,7 @@ def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
             raise ValueError(f"warm start from {path}: {name} is {tuple(src.shape)} there and "
                              f"{tuple(target.shape)} here; only a Linear's inputs may grow (at the end)")
     model.load_state_dict(new)
-    return {"source": str(source_run), "checkpoint": str(path), "step": int(state["step"]),
-            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "grown": grown, "new": fresh}
+    return {"grown": grown, "new": fresh}
 
 
 def write_record(run_dir: Path, record: dict) -> None:

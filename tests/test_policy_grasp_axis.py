@@ -49,6 +49,17 @@ def test_the_label_is_the_doubled_yaw_difference_and_zero_without_one_axis():
         episode_target_has_axis({"seed": 3})
 
 
+def test_other_families_label_the_object_they_pick_up():
+    bar, block = (dict(_record(o)["objects"][0], name=n) for o, n in ((SHAPES[0], "a"), (SHAPES[1], "b")))
+    stack = {"family": "stack", "params": {"top": "a", "bottom": "b"}, "objects": [bar, block]}
+    assert episode_target_has_axis({"task_record": stack})
+    assert not episode_target_has_axis({"task_record": {**stack, "params": {"top": "b", "bottom": "a"}}})
+    drawer_put = {"family": "drawer_put", "params": {"target": "a", "cabinet": {}}, "objects": [bar]}
+    assert episode_target_has_axis({"task_record": drawer_put})
+    # the handle is no object with a footprint: no axis to name
+    assert not episode_target_has_axis({"task_record": {"family": "drawer_open", "params": {}, "objects": []}})
+
+
 def test_the_axis_needs_the_tcp_frames_aux_head():
     with pytest.raises(ConfigError, match="aux_grasp_axis needs aux_target_weight > 0 and aux_target_frame 'tcp'"):
         load_policy_config(TINY, {"aux_grasp_axis": True, "aux_target_weight": 1.0})

@@ -1,0 +1,166 @@
+"""A torch policy rebuilt from an exported bundle's ONNX graphs, so a shipped bundle can be trained on.
+
+    model, normalizer, manifest = model_from_bundle("policy/bundles/demo")
+
+Why: a bundle is what a user has. The torch checkpoints of the run that made it are not in the repo (out/ runs
+are the day's), and remaking the shipped policy from nothing is hours on a small CPU (its RECIPE.md), so
+fine-tuning it on new data, or on more task families, starts here (`sudd train --init-from BUNDLE`).
+
+How: export leaves most weights under their parameter names, but constant folding rewrites the rest (a
+GroupNorm's scale reshaped to (C, 1, 1), a Linear's weight transposed for MatMul, the FiLM linears stacked
+into one matrix), under generated names. Rather than know each rewrite, a probe model of the bundle's config
+is exported by the same code with every parameter element set to its own index, k * 2**-21 (exact in
+float32): each folded element then names the parameter element it was copied from. A second probe with the
+values negated tells copies from constants that depend on no parameter (timestep frequencies, the proprio
+normalization taken from stats.npz). Each bundle initializer is then read back into the parameter elements
+its probe twin names. The rebuilt model must reproduce the bundle within the export's own parity tolerances
+(policy.parity), or nothing is returned.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from policy.config import TEXT_DIM, config_from_dict
+from policy.model import DiffusionPolicy
+from policy.normalize import Normalizer
+
+SCALE = 2.0 ** -21  # k * SCALE is exact in float32 for k < 2**24: up to 16 M parameters
+FP16_SUFFIX = "__fp16"  # policy.fp16's name for a weight stored as float16
+
+
+def is_bundle(path: str | Path) -> bool:
+    return (Path(path) / "manifest.json").is_file()
+
+
+def _graph(path: Path) -> tuple[dict[str, np.ndarray], list[tuple[str, list[str]]]]:
+    """A graph's initializers as float32 arrays under their original names (fp16 storage undone, merged
+    ones under each of their names), and its nodes as (op type, input names) without the Casts and
+    Identities that storage and merging added."""
+    import onnx
+    from onnx import numpy_helper
+
+    graph = onnx.load(str(path)).graph
+    inits = {}
+    for t in graph.initializer:
+        name = t.name[:-len(FP16_SUFFIX)] if t.name.endswith(FP16_SUFFIX) else t.name
+        a = numpy_helper.to_array(t)
+        inits[name] = a.astype(np.float32) if a.dtype == np.float16 else a
+    nodes = []
+    for n in graph.node:
+        if n.op_type == "Cast" and n.input[0].endswith(FP16_SUFFIX):
+            continue
+        if n.op_type == "Identity" and n.input[0] in inits:  # the exporter's alias for a merged initializer
+            inits[n.output[0]] = inits[n.input[0]]
+            continue
+        nodes.append((n.op_type, list(n.input)))
+    return inits, nodes
+
+
+def _slots(nodes: list[tuple[str, list[str]]], names) -> dict[str, tuple[int, int]]:
+    """Where each of `names` is first read: (node index, input index)."""
+    out: dict[str, tuple[int, int]] = {}
+    for i, (_, inputs) in enumerate(nodes):
+        for j, name in enumerate(inputs):
+            if name in names and name not in out:
+                out[name] = (i, j)
+    return out
+
+
+def _probe_graphs(cfg, normalizer: Normalizer, sign: float, out_dir: Path) -> dict[str, tuple]:
+    """Export a probe model whose parameter element k holds sign * (k + 1) * SCALE; its graphs' initializers."""
+    from policy.export import _ObsGraph, _onnx_export, _StepGraph, graph_specs
+
+    probe = DiffusionPolicy(cfg).eval()
+    probe.set_proprio_stats(normalizer)
+    k = 1
+    with torch.no_grad():
+        for p in probe.parameters():
+            n = p.numel()
+            p.copy_((sign * SCALE * torch.arange(k, k + n, dtype=torch.float64)).float().reshape(p.shape))
+            k += n
+    if k >= 2 ** 24:
+        raise ValueError(f"bundle import: {k} parameters, more than the probe's exact range (16 M)")
+    specs, H, W = graph_specs(cfg), *cfg.image_size
+    imgs = [torch.zeros(1, cfg.obs_horizon, H, W, 3, dtype=torch.uint8) for _ in cfg.cameras]
+    proprio, text = torch.zeros(1, cfg.obs_horizon, cfg.proprio_dim), torch.zeros(1, TEXT_DIM)
+    graphs = {}
+    for key, module, args in (("obs_encoder", _ObsGraph(probe), (*imgs, proprio, text)),
+                              ("denoiser", _StepGraph(probe), None)):
+        if args is None:
+            with torch.no_grad():
+                cond = _ObsGraph(probe)(*imgs, proprio, text)
+            args = (torch.zeros(1, cfg.pred_horizon, cfg.action_dim), torch.tensor([5]), cond)
+        names = [i["name"] for i in specs[key]["inputs"]], [o["name"] for o in specs[key]["outputs"]]
+        path = out_dir / f"{key}_{'pos' if sign > 0 else 'neg'}.onnx"
+        # the export's own dynamic axes: they change which nodes the tracer makes, so the generated names
+        _onnx_export(module, args, path, *names, {n: {0: "B"} for n in names[0] + names[1]}, 17)
+        graphs[key] = _graph(path)
+    return graphs
+
+
+def _read_back(model: DiffusionPolicy, bundle_dir: Path, pos: dict, neg: dict) -> dict:
+    """Fill `model`'s parameters from the bundle's initializers, guided by the probes; coverage figures."""
+    flat = torch.cat([p.detach().reshape(-1).double() for p in model.parameters()])
+    covered = torch.zeros(flat.numel(), dtype=torch.bool)
+    for key in ("obs_encoder", "denoiser"):
+        path = bundle_dir / f"{key}.onnx"
+        (mine, my_nodes), (their_inits, their_nodes) = pos[key], _graph(path)
+        if [op for op, _ in my_nodes] != [op for op, _ in their_nodes]:
+            raise ValueError(f"bundle import: {path}'s nodes differ from this code's export of its config: it was "
+                             f"exported by another version (manifest producer); re-export it from its run")
+        # by where a weight is read, not by its generated name: names are the tracer's counters
+        for name, (i, j) in _slots(my_nodes, mine).items():
+            a = mine[name]
+            if a.dtype != np.float32:
+                continue
+            b = their_inits.get(their_nodes[i][1][j])
+            if b is None or b.shape != a.shape:
+                raise ValueError(f"bundle import: {path} reads no {a.shape} weight where this code's export reads "
+                                 f"{name}; re-export the bundle from its run with this version")
+            copy = (neg[key][0][name] == -a) & (a != 0)
+            idx = np.rint(a[copy].astype(np.float64) / SCALE).astype(np.int64) - 1
+            flat[torch.from_numpy(idx)] = torch.from_numpy(b[copy].astype(np.float64))
+            covered[torch.from_numpy(idx)] = True
+    absent, k = [], 0
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            n = p.numel()
+            part = covered[k:k + n]
+            if not part.any():
+                absent.append(name)  # used by training only (not in any graph): keeps its fresh value
+            elif not part.all():
+                raise ValueError(f"bundle import: {name} is only partly in the graphs ({int(part.sum())} of {n} "
+                                 f"elements): its folded form is not a copy this reader can invert")
+            else:
+                p.copy_(flat[k:k + n].reshape(p.shape).float())
+            k += n
+    return {"parameters": int(flat.numel()), "not_in_graphs": absent}
+
+
+def model_from_bundle(bundle_dir: str | Path) -> tuple[DiffusionPolicy, Normalizer, dict]:
+    """The torch policy of a bundle (its weights as stored: EMA, fp16-rounded), its normalizer and manifest;
+    manifest["imported"] holds the coverage and the parity figures of the rebuilt model against the bundle."""
+    from policy.bundle import Bundle
+    from policy.parity import check_parity
+
+    bundle_dir = Path(bundle_dir)
+    Bundle.load(bundle_dir, warmup=False)  # refuses a broken bundle with its reason before anything else
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    cfg = config_from_dict(manifest["config"])
+    normalizer = Normalizer.load(bundle_dir / "stats.npz")
+    with tempfile.TemporaryDirectory() as tmp:
+        pos = _probe_graphs(cfg, normalizer, 1.0, Path(tmp))
+        neg = _probe_graphs(cfg, normalizer, -1.0, Path(tmp))
+    model = DiffusionPolicy(cfg)
+    model.set_proprio_stats(normalizer)
+    coverage = _read_back(model, bundle_dir, pos, neg)
+    model.eval()
+    parity = check_parity(model, normalizer, bundle_dir)  # raises ExportError when the rebuild is off
+    manifest["imported"] = {**coverage, "parity": parity}
+    return model, normalizer, manifest

@@ -1,0 +1,81 @@
+"""A torch policy rebuilt from a bundle's ONNX graphs (policy.bundle_import), and a run warm-started from one."""
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from policy.bundle_import import model_from_bundle
+from policy.export import export
+from policy.fp16 import round_weights_
+from policy.testing import TINY, hash_embedder, synthetic_dataset
+from policy.train import load_run_model, train
+
+ROOT = Path(__file__).resolve().parents[1]
+CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"
+# the shipped bundle's kind of model: aux head fed to the denoiser, release point in the base frame (the
+# proprio normalization inside the graph), flow matching, gripper-frame actions
+SHIPPED_LIKE = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "aux_condition": True,
+                "aux_release_frame": "base", "objective": "flow", "obs_horizon": 1}
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("import")
+    data = synthetic_dataset(root / "data", episodes=4, tasks=("pick_place", "stack"), smooth=True)
+    train(data, dict(TINY), root / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
+          overrides=SHIPPED_LIKE)
+    export(root / "run", root / "bundle", cache_dir=CACHE)
+    return root
+
+
+def test_rebuilt_weights_are_the_exported_ones(exported):
+    model, normalizer, manifest = model_from_bundle(exported / "bundle")
+    ref, _, _ = load_run_model(exported / "run")
+    round_weights_(ref)  # the bundle stores the EMA weights rounded to fp16
+    mine, theirs = model.state_dict(), ref.state_dict()
+    assert set(mine) == set(theirs)
+    for name in theirs:
+        torch.testing.assert_close(mine[name], theirs[name], rtol=0, atol=0, msg=name)
+    assert manifest["imported"]["not_in_graphs"] == []
+    assert manifest["imported"]["parity"]["step_max_abs_err"] <= 1e-4
+    assert (normalizer.proprio_scale == ref.proprio_scale.numpy()).all()
+
+
+def test_a_bundle_from_another_export_is_refused_with_the_reason(exported, tmp_path):
+    """Graphs that do not match what this code exports for the manifest's config (here: a config edited to
+    another denoiser kernel) are refused, never read into the wrong parameters."""
+    bad = tmp_path / "bundle"
+    shutil.copytree(exported / "bundle", bad)
+    manifest = json.loads((bad / "manifest.json").read_text())
+    manifest["config"]["kernel_size"] += 2
+    (bad / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="nodes differ|reads no"):
+        model_from_bundle(bad)
+
+
+def test_a_run_warm_started_from_a_bundle_starts_from_its_weights(exported):
+    run = exported / "from_bundle"
+    # the bundle as the config too: the one it was trained with (its manifest's)
+    train(exported / "data", exported / "bundle", run, steps=2, embedder=hash_embedder, progress=False, threads=1,
+          overrides={"lr": 0.0, "warmup_steps": 0}, init_from=exported / "bundle")
+    record = json.loads((run / "warm_start.json").read_text())
+    assert record["bundle"] is True and record["grown"] == [] and record["new"] == []
+    after, _, _ = load_run_model(run)
+    src, _, _ = model_from_bundle(exported / "bundle")
+    for name, value in src.state_dict().items():  # lr 0: the weights the run starts from, unchanged
+        torch.testing.assert_close(after.state_dict()[name], value, msg=name)
+
+
+@pytest.mark.skipif(not (ROOT / "policy/bundles/demo/text_encoder.onnx").is_file(),
+                    reason="the demo bundle's text encoder is restored by `make` (sudd export --restore-text-encoder)")
+def test_the_shipped_bundle_rebuilds_in_torch():
+    model, _, manifest = model_from_bundle(ROOT / "policy/bundles/demo")
+    imported = manifest["imported"]
+    assert imported["not_in_graphs"] == []
+    assert imported["parameters"] == manifest["params"]["policy_total"]
+    assert imported["parity"]["step_max_abs_err"] <= 1e-4 and imported["parity"]["chunk_max_abs_err"] <= 1e-3
