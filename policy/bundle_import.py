@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from policy.config import TEXT_DIM, config_from_dict
+from policy.config import config_from_dict
+from policy.fp16 import SUFFIX as FP16_SUFFIX
 from policy.model import DiffusionPolicy
 from policy.normalize import Normalizer
 
 SCALE = 2.0 ** -21  # k * SCALE is exact in float32 for k < 2**24: up to 16 M parameters
-FP16_SUFFIX = "__fp16"  # policy.fp16's name for a weight stored as float16
 
 
 def is_bundle(path: str | Path) -> bool:
@@ -72,9 +72,9 @@ def _slots(nodes: list[tuple[str, list[str]]], names) -> dict[str, tuple[int, in
     return out
 
 
-def _probe_graphs(cfg, normalizer: Normalizer, sign: float, out_dir: Path) -> dict[str, tuple]:
-    """Export a probe model whose parameter element k holds sign * (k + 1) * SCALE; its graphs' initializers."""
-    from policy.export import _ObsGraph, _onnx_export, _StepGraph, graph_specs
+def _probe_graphs(cfg, normalizer: Normalizer, sign: float, opset: int, out_dir: Path) -> dict[str, tuple]:
+    """Export a probe model whose parameter element k holds sign * (k + 1) * SCALE; its graphs (`_graph`)."""
+    from policy.export import graph_specs, write_policy_graphs
 
     probe = DiffusionPolicy(cfg).eval()
     probe.set_proprio_stats(normalizer)
@@ -86,22 +86,8 @@ def _probe_graphs(cfg, normalizer: Normalizer, sign: float, out_dir: Path) -> di
             k += n
     if k >= 2 ** 24:
         raise ValueError(f"bundle import: {k} parameters, more than the probe's exact range (16 M)")
-    specs, H, W = graph_specs(cfg), *cfg.image_size
-    imgs = [torch.zeros(1, cfg.obs_horizon, H, W, 3, dtype=torch.uint8) for _ in cfg.cameras]
-    proprio, text = torch.zeros(1, cfg.obs_horizon, cfg.proprio_dim), torch.zeros(1, TEXT_DIM)
-    graphs = {}
-    for key, module, args in (("obs_encoder", _ObsGraph(probe), (*imgs, proprio, text)),
-                              ("denoiser", _StepGraph(probe), None)):
-        if args is None:
-            with torch.no_grad():
-                cond = _ObsGraph(probe)(*imgs, proprio, text)
-            args = (torch.zeros(1, cfg.pred_horizon, cfg.action_dim), torch.tensor([5]), cond)
-        names = [i["name"] for i in specs[key]["inputs"]], [o["name"] for o in specs[key]["outputs"]]
-        path = out_dir / f"{key}_{'pos' if sign > 0 else 'neg'}.onnx"
-        # the export's own dynamic axes: they change which nodes the tracer makes, so the generated names
-        _onnx_export(module, args, path, *names, {n: {0: "B"} for n in names[0] + names[1]}, 17)
-        graphs[key] = _graph(path)
-    return graphs
+    write_policy_graphs(probe, out_dir, opset, fp16=False)
+    return {key: _graph(out_dir / spec["file"]) for key, spec in graph_specs(cfg).items() if key != "text_encoder"}
 
 
 def _read_back(model: DiffusionPolicy, bundle_dir: Path, pos: dict, neg: dict) -> dict:
@@ -155,8 +141,8 @@ def model_from_bundle(bundle_dir: str | Path) -> tuple[DiffusionPolicy, Normaliz
     cfg = config_from_dict(manifest["config"])
     normalizer = Normalizer.load(bundle_dir / "stats.npz")
     with tempfile.TemporaryDirectory() as tmp:
-        pos = _probe_graphs(cfg, normalizer, 1.0, Path(tmp))
-        neg = _probe_graphs(cfg, normalizer, -1.0, Path(tmp))
+        pos = _probe_graphs(cfg, normalizer, 1.0, manifest["opset"], Path(tmp))
+        neg = _probe_graphs(cfg, normalizer, -1.0, manifest["opset"], Path(tmp))
     model = DiffusionPolicy(cfg)
     model.set_proprio_stats(normalizer)
     coverage = _read_back(model, bundle_dir, pos, neg)

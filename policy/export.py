@@ -143,6 +143,27 @@ class _StepGraph(torch.nn.Module):
         return self.unet.denoise(noisy, timestep, cond)
 
 
+def write_policy_graphs(model: DiffusionPolicy, out_dir: Path, opset: int = OPSET, fp16: bool = True) -> dict:
+    """Trace obs_encoder.onnx and denoiser.onnx of `model` into out_dir; their weight-storage figures by graph.
+    The one place the policy graphs are traced: export, and policy.bundle_import's probes, which must get the
+    same nodes."""
+    cfg = model.cfg
+    specs = graph_specs(cfg)
+    g = torch.Generator().manual_seed(0)
+    H, W = cfg.image_size
+    ex_imgs = [torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
+               for _ in cfg.cameras]
+    ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_dim), torch.randn(1, TEXT_DIM)
+    so, sd = specs["obs_encoder"], specs["denoiser"]
+    info = {"obs_encoder": _write_graph(_ObsGraph(model), (*ex_imgs, ex_p, ex_t), out_dir / so["file"], so, opset,
+                                        fp16)}
+    with torch.no_grad():
+        cond = _ObsGraph(model)(*ex_imgs, ex_p, ex_t)
+    info["denoiser"] = _write_graph(_StepGraph(model), (torch.randn(1, cfg.pred_horizon, cfg.action_dim),
+                                                        torch.tensor([5]), cond), out_dir / sd["file"], sd, opset, fp16)
+    return info
+
+
 # The manifest key holding the sampler's schedule, and what the denoiser graph predicts, per objective.
 SAMPLER_KEY = {"ddpm": "ddim", "flow": "euler"}
 PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
@@ -200,19 +221,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
     try:
         specs = graph_specs(cfg)
-        g = torch.Generator().manual_seed(0)
-        H, W = cfg.image_size
-        ex_imgs = [torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
-                   for _ in cfg.cameras]
-        ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_dim), torch.randn(1, TEXT_DIM)
-        so, sd = specs["obs_encoder"], specs["denoiser"]
-        weights["obs_encoder"] = _write_graph(_ObsGraph(model), (*ex_imgs, ex_p, ex_t), tmp / so["file"], so, opset,
-                                              fp16_weights)
-        with torch.no_grad():
-            cond = _ObsGraph(model)(*ex_imgs, ex_p, ex_t)
-        weights["denoiser"] = _write_graph(_StepGraph(model), (torch.randn(1, cfg.pred_horizon, cfg.action_dim),
-                                                               torch.tensor([5]), cond), tmp / sd["file"], sd, opset,
-                                           fp16_weights)
+        weights.update(write_policy_graphs(model, tmp, opset, fp16_weights))
         text_info = add_text_encoder(tmp, cache_dir, opset)
         normalizer.save(tmp / "stats.npz")
         files = [p for p in sorted(tmp.rglob("*")) if p.is_file()]

@@ -17,6 +17,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 MIN_ELEMENTS = 256
+SUFFIX = "__fp16"  # the stored float16 copy of initializer W is named W + SUFFIX (policy.bundle_import reads it)
 
 
 def round_weights_(module) -> None:
@@ -42,8 +43,8 @@ def weight_only_fp16(model: onnx.ModelProto, min_elements: int = MIN_ELEMENTS) -
             continue
         worst = max(worst, float(np.abs(h.astype(np.float32) - w).max() / max(float(np.abs(w).max()), 1e-30)))
         graph.initializer.remove(t)
-        graph.initializer.append(numpy_helper.from_array(h, f"{t.name}__fp16"))
-        casts.append(helper.make_node("Cast", [f"{t.name}__fp16"], [t.name], to=TensorProto.FLOAT,
+        graph.initializer.append(numpy_helper.from_array(h, t.name + SUFFIX))
+        casts.append(helper.make_node("Cast", [t.name + SUFFIX], [t.name], to=TensorProto.FLOAT,
                                       name=f"{t.name}__cast"))
     # The Cast outputs keep the old names, so no consumer changes; Casts go first (they read only initializers)
     nodes = casts + list(graph.node)
