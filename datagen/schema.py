@@ -104,6 +104,20 @@ def perturbed_actions(subtask: np.ndarray) -> np.ndarray:
     return np.concatenate([p[1:], p[-1:]])
 
 
+LEVEL_SHARE = 0.01  # a gripper command held in at least this share of the steps is a level the data uses
+
+
+def gripper_levels(commands) -> tuple[float, ...]:
+    """Recorded gripper commands (0 open .. 1 closed; an array or a list of per-episode arrays) -> the
+    finger positions the collector used, to 0.01, always with open (0) and closed (1): what the runtime's
+    gripper channel snaps the policy's regressed value to (runtime/controller/gripper.py). The ramps between
+    levels are a few steps each and drop out under LEVEL_SHARE."""
+    c = np.concatenate([np.ravel(a) for a in commands]) if isinstance(commands, (list, tuple)) else np.ravel(commands)
+    values, counts = np.unique(np.round(np.clip(c, 0.0, 1.0), 2), return_counts=True)
+    used = values[counts >= LEVEL_SHARE * max(len(c), 1)]
+    return tuple(float(v) for v in sorted(set(used.tolist()) | {0.0, 1.0}))
+
+
 def grasp_and_release_per_step(action: np.ndarray, subtask: np.ndarray | None = None) -> np.ndarray:
     """(T, Da) recorded actions (gripper command 0 open .. 1 closed) -> (T, 2) int: for each step, the step of
     the grasp it is on its way to (or in) and of the release that grasp leads to. A grasp is where a closed

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from datagen.schema import (episode_success, grasp_and_release_per_step,  # noqa: F401 (policy.data API)
+from datagen.schema import (episode_success, grasp_and_release_per_step, gripper_levels,  # noqa: F401 (policy.data API)
                             grasp_and_release_steps, perturbed_actions)
 from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
@@ -191,6 +191,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         # turns relative to its own newest TCP pose before normalizing (tcp frame)
         self.action = [a["action"] if relative else self.normalizer.normalize_action(a["action"]) for a in low]
         self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
+        self.gripper_levels = gripper_levels([a["action"][:, -1] for a in low])
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
         # per step: the grasp it heads for and the release that grasp leads to (past injected failures)
         self.cycle = [grasp_and_release_per_step(a["action"], a["subtask"]) for a in low]
@@ -337,4 +338,5 @@ class PolicyDataset(torch.utils.data.Dataset):
                 "episodes_total": len(self.store), "episodes_used": len(self.episodes),
                 "include_failures": self.include_failures, "steps_used": int(sum(self.lengths)), "samples": len(self),
                 "tasks": sorted({m["task"] for m in metas}), "instructions": sorted(set(self.instructions)),
-                "texts": sorted(self.text_row), "holdout": data_holdout(metas)}
+                "texts": sorted(self.text_row), "holdout": data_holdout(metas),
+                "gripper_levels": list(self.gripper_levels)}

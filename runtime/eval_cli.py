@@ -77,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _eval(args) -> int:
     from policy.bundle import Bundle
-    from runtime.controller import ControllerConfig, load_controller
+    from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from sim.tasks import get_task
 
@@ -86,6 +86,7 @@ def _eval(args) -> int:
                          "one chunk); leave it out to use the measured time")
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
+    controller = with_bundle_levels(controller, bundle.manifest)  # recorded in summary.json as used
     bundle.check_replan_every(args.replan_every)
     tasks = bundle.tasks if not args.task or "all" in args.task else [get_task(t).name for t in args.task]
     if not tasks:

@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from runtime.controller import ControllerConfig, ControllerLoop
+from runtime.controller import ControllerConfig, ControllerLoop, with_bundle_levels
 from runtime.messages import ActionChunk
 from runtime.sim_cell import cell_limits
 from safety import SafetyFilter, default_limits
@@ -95,7 +95,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
     limits = cell_limits(default_limits(ep.world.variant.name), ep.world)
     loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(limits)),
-                          controller or ControllerConfig())
+                          with_bundle_levels(controller or ControllerConfig(), bundle.manifest))
     rec = Recorder(ep, image_size=tuple(bundle.image_size))
     hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
     per_tick = max(1, round(1.0 / (hz * rig.control_period)))

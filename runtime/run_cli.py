@@ -137,10 +137,12 @@ def _run(args) -> int:
             print(f"sudd run: {flag} configures the robot node: add --sim or --robot-ip IP", file=sys.stderr)
             return 2
     # A bad file is a ConfigError naming the field, raised here before any node starts.
-    if args.controller is not None:
-        from runtime.controller import load_controller
+    from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
 
-        robot["controller"] = load_controller(args.controller)
+    controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
+    levels = with_bundle_levels(controller, bundle_manifest(bundle))
+    if args.controller is not None or levels != controller:
+        robot["controller"] = levels
     if args.limits is not None:
         from safety import load_limits
 

@@ -11,10 +11,10 @@ Modules, one job each: `config` (knobs), `ik_follow` (chunk -> joint knots on th
 No torch here: the runtime side never imports the policy's framework.
 """
 
-from runtime.controller.config import ControllerConfig, load_controller
+from runtime.controller.config import ControllerConfig, load_controller, with_bundle_levels
 from runtime.controller.ik_follow import ChunkRejected, JointChunk
 from runtime.controller.loop import ControllerLoop, CycleResult
 from runtime.controller.recovery import RecoveryHooks
 
-__all__ = ["ControllerLoop", "ControllerConfig", "load_controller", "CycleResult", "RecoveryHooks", "ChunkRejected",
-           "JointChunk"]
+__all__ = ["ControllerLoop", "ControllerConfig", "load_controller", "with_bundle_levels", "CycleResult",
+           "RecoveryHooks", "ChunkRejected", "JointChunk"]

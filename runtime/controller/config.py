@@ -13,13 +13,19 @@ Why these defaults:
 * servo lookahead 0.05 s / gain 1000: the stream is already C2-smooth at the servo rate, so the robot's own
   smoothing (which adds lag) can be light.
 * gripper hysteresis 0.4 / 0.6: the policy's channel is a regressed 0..1 value that hovers near 0.5 while
-  it is undecided; a band keeps the fingers from chattering.
+  it is undecided; a band keeps the fingers from chattering. With more than two `gripper_levels` the band is
+  the same fraction of the gap between each two neighbouring levels.
+* `gripper_levels` None: the positions the policy bundle's data commanded (its manifest's
+  `data.gripper_levels`; open and closed when it records none). A collector that opens the fingers half-way
+  to reach between a drawer handle and the drawer front records 0.5; a binary channel could never execute it,
+  and the policy, seeing fingers its data never had, wandered off (policy/EXPERIMENTS.md, "Gripper levels").
 * `reopen_empty_grasp` on, `reopen_hold` 2 s: on 120 held-out heavy-DR seeds the shipped policy completed
   78 pick-and-places with it against 64 without (14 gained, none lost); 2 s is about one approach.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from sim.config import ConfigError, load_toml, spec, validate
@@ -46,8 +52,12 @@ class ControllerConfig:
                                 doc="IK result must reproduce the target this well (rad for rotation x 10)"))
     servo_lookahead: float = field(default=0.05, metadata=spec(0.03, 0.2, "s"))
     servo_gain: float = field(default=1000.0, metadata=spec(100.0, 2000.0))
-    gripper_close_above: float = field(default=0.6, metadata=spec(0.0, 1.0))
-    gripper_open_below: float = field(default=0.4, metadata=spec(0.0, 1.0))
+    gripper_close_above: float = field(default=0.6, metadata=spec(0.0, 1.0, doc=(
+        "the channel moves up to the next level above this fraction of the gap between the two levels")))
+    gripper_open_below: float = field(default=0.4, metadata=spec(0.0, 1.0, doc="and down below this fraction"))
+    gripper_levels: tuple[float, ...] | None = field(default=None, metadata=spec(0.0, 1.0, doc=(
+        "finger positions (0 open .. 1 closed) the channel snaps to, increasing, from 0 to 1; the last is a "
+        "grasp (closed with `gripper_force`), the others position moves. None: the policy bundle's")))
     gripper_min_hold: float = field(default=0.0, metadata=spec(0.0, 5.0, "s", doc=(
         "after a close or open, ignore the opposite edge for this long: a grasp is not undone by one chunk "
         "that flickers open (the collector holds 0.6 s after closing)")))
@@ -71,6 +81,11 @@ class ControllerConfig:
         if self.gripper_open_below >= self.gripper_close_above:
             raise ConfigError(f"gripper_open_below = {self.gripper_open_below} must be below gripper_close_above = "
                               f"{self.gripper_close_above} (the hysteresis band)")
+        levels = self.gripper_levels
+        if levels is not None and (len(levels) < 2 or levels[0] != 0.0 or levels[-1] != 1.0
+                                   or any(b <= a for a, b in zip(levels, levels[1:]))):
+            raise ConfigError(f"gripper_levels = {list(levels)}: expected increasing finger positions from 0.0 "
+                              "(open) to 1.0 (closed), e.g. [0.0, 0.5, 1.0]; leave it out to take the bundle's")
         if self.max_blend_time < self.blend_time:
             raise ConfigError(f"max_blend_time = {self.max_blend_time} must be >= blend_time = {self.blend_time}")
 
@@ -81,4 +96,21 @@ def load_controller(path) -> ControllerConfig:
     return load_toml(ControllerConfig, path)
 
 
-__all__ = ["ControllerConfig", "load_controller"]
+def with_bundle_levels(cfg: ControllerConfig, manifest: dict) -> ControllerConfig:
+    """`cfg` with the policy bundle's gripper levels (its manifest's `data.gripper_levels`, recorded by
+    `sudd train` from the commands its data used) where `cfg` leaves them to the bundle; open and closed for a
+    bundle that records none. Levels out of shape are a ConfigError naming the bundle's field."""
+    if cfg.gripper_levels is not None:
+        return cfg
+    levels = (manifest.get("data") or {}).get("gripper_levels")
+    if levels is None:
+        return cfg
+    try:
+        out = dataclasses.replace(cfg, gripper_levels=tuple(float(v) for v in levels))
+        out.validate()
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"policy bundle manifest data.gripper_levels = {levels!r}: {e}") from None
+    return out
+
+
+__all__ = ["ControllerConfig", "load_controller", "with_bundle_levels"]

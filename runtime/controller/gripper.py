@@ -1,9 +1,13 @@
-"""The chunk's gripper channel -> open/close commands, with hysteresis, through the safety gripper limits.
+"""The chunk's gripper channel -> finger commands at a few levels, with hysteresis, through the safety gripper
+limits.
 
-Why a binary decision: the policy regresses a 0..1 closure that the data recorded as open/close commands;
-forwarding every small change would restart the 2F-85's move (and its object detection) at 10 Hz. A band
-(`gripper_open_below` .. `gripper_close_above`) turns it into edges; only an edge sends a command, and only
-while the stop state allows motion (an e-stop or protective stop must not drop a held object).
+Why levels and not the regressed value: the policy regresses a 0..1 closure that the data recorded as a few
+commands (open and closed; the drawer families also a half-open pre-shape that reaches between a handle and
+the drawer front); forwarding every small change would restart the 2F-85's move (and its object detection) at
+10 Hz. The channel snaps to the nearest of `gripper_levels` with a band between each two neighbours
+(`gripper_open_below` .. `gripper_close_above` of their gap), so only a change of level sends a command, and
+only while the stop state allows motion (an e-stop or protective stop must not drop a held object). The top
+level is a grasp (closed with the configured force, checked for an empty close); the others are positions.
 
 An empty close is undone (`reopen_empty_grasp`): when the gripper reports its fingers stopped at the closed
 end with nothing between them (the 2F-85's object detection, OBJ = 3), the fingers open and the policy's close
@@ -32,10 +36,14 @@ def _norm(x: float, lo: float, hi: float) -> float:
     return min(1.0, max(0.0, (x - lo) / (hi - lo)))
 
 
+BINARY = (0.0, 1.0)  # open and closed: the levels of a bundle that records none
+
+
 class GripperChannel:
     def __init__(self, gripper, limits, config):
         self.gripper, self.limits, self.cfg = gripper, limits, config
-        self.closed: bool | None = None  # the commanded state; None until the first command
+        self.levels = tuple(config.gripper_levels or BINARY)
+        self.level: int | None = None  # index of the commanded level; None until the first command
         self.commands = 0
         self.empty_closes = 0  # closes undone because the fingers caught nothing
         self._edge_at = -float("inf")  # when the last command was sent
@@ -49,7 +57,7 @@ class GripperChannel:
             return None
         cfg = self.cfg
         if self._reopened_until is not None:
-            if value <= cfg.gripper_open_below or now >= self._reopened_until:
+            if value <= self._band(len(self.levels) - 2)[0] or now >= self._reopened_until:
                 self._reopened_until = None  # the policy agrees, or has had its time to approach again
             else:
                 value = 0.0
@@ -60,29 +68,48 @@ class GripperChannel:
             if events is not None:
                 events.report("gripper_empty_grasp", now, message="the fingers closed on nothing: reopened, "
                               f"the policy's close ignored for up to {cfg.reopen_hold:g} s")
-        want = self.closed
-        if value >= cfg.gripper_close_above:
-            want = True
-        elif value <= cfg.gripper_open_below:
-            want = False
-        if want is None or want == self.closed:
+        want = self._level_for(value)
+        if want is None or want == self.level:
             return None
-        if self.closed is not None and now - self._edge_at < cfg.gripper_min_hold:
+        if self.level is not None and now - self._edge_at < cfg.gripper_min_hold:
             return None
-        opening = 0.0 if want else STROKE_M
+        opening = STROKE_M * (1.0 - self.levels[want])
         cmd, _ = limit_gripper(self.limits, opening, cfg.gripper_speed, cfg.gripper_force, now, events)
         if cmd is None:
             return None
         position = 1.0 - min(1.0, cmd.opening / STROKE_M)
         ok = self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE), wait=False)
         if ok:
-            if self.closed is not None:  # the first command only sets the state: no hold after it
+            if self.level is not None:  # the first command only sets the state: no hold after it
                 self._edge_at = now
-            self.closed = want
+            self.level = want
             self.commands += 1
             self._verified = False
-            return want
+            return self.closed
         return None
+
+    @property
+    def closed(self) -> bool | None:
+        """Whether the commanded level is the grasp (the top one); None before the first command."""
+        return None if self.level is None else self.level == len(self.levels) - 1
+
+    def _band(self, i: int) -> tuple[float, float]:
+        """The hysteresis band between level i and level i + 1: below it reads i, above it i + 1."""
+        lo, hi = self.levels[i], self.levels[i + 1]
+        return lo + self.cfg.gripper_open_below * (hi - lo), lo + self.cfg.gripper_close_above * (hi - lo)
+
+    def _level_for(self, value: float) -> int | None:
+        """The level `value` asks for; inside a band, the standing level when it is one of the band's two,
+        else the one of them nearer to it (None before the first command: no level asked for yet)."""
+        for i in range(len(self.levels) - 1):
+            below, above = self._band(i)
+            if value <= below:
+                return i
+            if value < above:
+                if self.level is None:
+                    return None
+                return self.level if self.level in (i, i + 1) else (i if self.level < i else i + 1)
+        return len(self.levels) - 1
 
     def _caught_nothing(self, now: float) -> bool:
         """Whether the standing close has stopped with nothing between the fingers (asks the gripper at most
