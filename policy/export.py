@@ -191,7 +191,24 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         training["warm_start"] = warm
     normalizer = Normalizer.load(run_dir / "stats.npz")
     data_info = json.loads((run_dir / "dataset.json").read_text())
+    if "gripper_levels" not in data_info:
+        data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights)
+
+
+def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
+    """The gripper levels of a run trained before dataset.json recorded them, read from its data; without the
+    data, a refusal: exported as open/closed only, a drawer policy's half-open pre-shape would never reach
+    the fingers (runtime/controller/gripper.py)."""
+    from datagen.schema import gripper_levels
+    from datagen.store import Dataset
+
+    if not data_path or not Path(data_path).is_dir():
+        raise FileNotFoundError(f"{run_dir}/dataset.json records no gripper_levels and its data {data_path!r} is "
+                                "gone: add \"gripper_levels\": [0.0, 1.0] there (or the levels the data's gripper "
+                                "commands held, e.g. [0.0, 0.5, 1.0] with drawer episodes), or retrain")
+    store = Dataset(data_path)
+    return gripper_levels([store.window(row["index"], fields=("action",))["action"][:, -1] for row in store.episodes()])
 
 
 def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir: str | Path,

@@ -365,3 +365,20 @@ def test_input_sensitivity_finds_the_inputs_a_policy_ignores(run, bundle):
     assert seeing["image_scene"] > 0 and blind_cameras(seeing) == ["wrist"]
     real = input_sensitivity(bundle, data, samples=4)  # the ONNX bundle on recorded windows
     assert set(real) >= {"image_scene", "image_wrist", "proprio", "text", "noise"} and real["noise"] > 0
+
+
+def test_the_bundle_carries_the_gripper_levels_and_an_older_run_reads_them_from_its_data(run, bundle_dir, tmp_path):
+    import shutil
+
+    assert json.loads((bundle_dir / "manifest.json").read_text())["data"]["gripper_levels"] == [0.0, 1.0]
+    old = tmp_path / "old"
+    shutil.copytree(run, old)
+    info = json.loads((old / "dataset.json").read_text())
+    del info["gripper_levels"]  # as `sudd train` wrote it before it recorded them
+    (old / "dataset.json").write_text(json.dumps(info))
+    export(old, tmp_path / "b", cache_dir=CACHE)
+    assert json.loads((tmp_path / "b" / "manifest.json").read_text())["data"]["gripper_levels"] == [0.0, 1.0]
+    info["path"] = str(tmp_path / "gone")
+    (old / "dataset.json").write_text(json.dumps(info))
+    with pytest.raises(FileNotFoundError, match=r"records no gripper_levels and its data .*gone.* is gone"):
+        export(old, tmp_path / "c", cache_dir=CACHE)

@@ -194,5 +194,6 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
         assert im.size[1] > 3 * 200
     info = json.loads((tmp_path / "run" / "dataset.json").read_text())
     assert info["validation_episodes"] == len(val.episodes) and info["episodes_used"] == len(fit.episodes)
+    assert info["gripper_levels"] == [0.0, 1.0]  # the synthetic episodes open and close only
     with pytest.raises(ValueError, match="leaves no val episodes"):
         PolicyDataset(data, load_policy_config(TINY, {"val_fraction": 1e-9}), embedder=hash_embedder, split="val")
