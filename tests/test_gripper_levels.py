@@ -56,6 +56,7 @@ def test_inside_a_band_a_far_level_moves_to_the_nearer_neighbour(rig):
     assert _feed(channel, [0.0, 0.75]) == [(False, 0.0), (False, 0.5)]  # from open, 0.75 is at most half-closed
     assert _feed(GripperChannel(rig.gripper, default_limits("ur5e"), ControllerConfig(gripper_levels=(0.0, 0.5, 1.0))),
                  [0.25]) == [(None, None)]  # nothing standing yet: a value inside a band asks for nothing
+    assert _feed(channel, [float("nan"), float("inf")]) == [(None, 0.5), (None, 0.5)]  # not a number: no change
 
 
 def test_levels_come_from_the_bundle_unless_the_controller_names_them():

@@ -22,6 +22,8 @@ Units: the driver speaks normalised registers (position 0 open .. 1 closed, spee
 
 from __future__ import annotations
 
+import math
+
 from safety.gripper import limit_gripper
 
 STROKE_M = 0.085  # 2F-85 finger gap fully open
@@ -100,7 +102,10 @@ class GripperChannel:
 
     def _level_for(self, value: float) -> int | None:
         """The level `value` asks for; inside a band, the standing level when it is one of the band's two,
-        else the one of them nearer to it (None before the first command: no level asked for yet)."""
+        else the one of them nearer to it (None before the first command: no level asked for yet, and for a
+        value that is not a number)."""
+        if not math.isfinite(value):
+            return None
         for i in range(len(self.levels) - 1):
             below, above = self._band(i)
             if value <= below:
