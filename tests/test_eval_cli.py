@@ -93,7 +93,10 @@ def test_ctrl_c_stops_an_evaluation_cleanly_and_keeps_its_finished_episodes(tmp_
     cmd = [sys.executable, "-c", "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))", "eval",
            "--policy", "policy/bundles/demo", "--task", "pick_place", "--episodes", "12", "--no-collector",
            "--time-limit-factor", "0.1", "--latency-ms", "6", "--workers", "2", "--out", str(out)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    # Ctrl-C as in a terminal: a job started in the background of a non-interactive shell (as CI may run the
+    # suite) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     results = out / "results.jsonl"
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and proc.poll() is None:
