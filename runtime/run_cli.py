@@ -130,7 +130,8 @@ def _run(args) -> int:
     bundle = resolve_bundle(args.policy)
     from policy.bundle import check_replan_every
 
-    check_replan_every(args.replan_every, int(bundle_manifest(bundle)["horizons"]["action"]))
+    manifest = bundle_manifest(bundle)
+    check_replan_every(args.replan_every, int(manifest["horizons"]["action"]))
     robot = {}
     for flag, given in (("--controller", args.controller), ("--limits", args.limits)):
         if given is not None and not (args.sim or args.robot_ip):
@@ -140,9 +141,7 @@ def _run(args) -> int:
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
 
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
-    levels = with_bundle_levels(controller, bundle_manifest(bundle))
-    if args.controller is not None or levels != controller:
-        robot["controller"] = levels
+    robot["controller"] = with_bundle_levels(controller, manifest)
     if args.limits is not None:
         from safety import load_limits
 
