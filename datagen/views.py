@@ -1,5 +1,6 @@
-"""Labelled views of heavy-DR pick_place scenes, rendered without physics or planning, to pretrain the
-policy's image encoder to find the named object.
+"""Labelled views of heavy-DR task scenes, rendered without physics or planning, to pretrain the policy's
+image encoder to find what the instruction names: the object and its bin, the blocks to stack, the drawer's
+handle.
 
 Why: in closed loop the distilled policy goes through the motions in the wrong place. Its encoder, trained on
 447 episodes, puts the grasp point within 3 cm in scenes it trained on and 8.5 cm off in new ones: it learns
@@ -9,13 +10,14 @@ renders, so the encoder can see many more scenes.
 A view: the arm at a pose on the way from home to above the named object (each scene's first view is at
 home, where every episode starts), both cameras exactly as the recorder makes them (sensor noise included),
 the proprioception, the instruction, and the two points the policy's aux head regresses: where the episode
-would close the gripper and where it would open it. Those are the object's and the bin's positions plus
-offsets measured on recorded episodes (`measure_offsets`: median of the recorded grasp/release target minus
-the object/bin position), so the labels mean what the policy's own aux target means; with them the grasp yaw
-and the object's footprint period, for the grasp-axis label (policy/grasp_axis.py). Carrying views (the
-object held on its way to the bin, `carry`) are datagen/views_carry.py's.
+would close the gripper and where it would open it. Those are the family's anchors (datagen/view_anchors.py:
+the object and the bin, the two blocks, the handle) plus offsets in the anchor's frame measured on recorded
+episodes of the family (`measure_offsets`: median of the recorded grasp/release target minus the anchor), so
+the labels mean what the policy's own aux target means; with them the grasp yaw and the footprint period, for
+the grasp-axis label (policy/grasp_axis.py). Carrying views (the pick_place object held on its way to the bin,
+`carry`) are datagen/views_carry.py's.
 
-Shards of `SHARD` scenes are written as they finish (`views_<first seed>.npz`), so an interrupted run keeps
+Shards of `SHARD` scenes of one family are written as they finish (`views_<family>_<first seed>.npz`), so an interrupted run keeps
 what it made and a rerun skips the shards already there.
 """
 
@@ -27,55 +29,45 @@ import numpy as np
 
 from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
+from datagen.view_anchors import FAMILIES, anchors
 from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
-from sim.state import StateView
 from sim.tasks import Holdout
-from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 SHARD = 50
-TASK = "pick_place"
+TASK = "pick_place"  # the family of shards rendered before views knew others (they have no "task")
 
 
-def _points(ep) -> tuple[np.ndarray, np.ndarray, float]:
-    """The named object's and its bin's positions (world = robot base frame), and the grasp yaw."""
-    state = StateView(ep.world)
-    target = ep.instance.params["target"]
-    yaw = grasp_yaw(ep.instance.obj(target), state.rotation(target))
-    return state.position(target), state.position(ep.instance.params["bin"]), yaw
-
-
-def _period(ep) -> float:
-    """The named object's footprint period (0 for a round one): which grasp yaws are the same grasp."""
-    return footprint_period(ep.instance.obj(ep.instance.params["target"])) or 0.0
-
-
-def measure_offsets(dataset_dir: str | Path, episodes: int = 60) -> dict:
-    """Median (recorded grasp target - object position) and (release target - bin position), in metres,
-    over up to `episodes` successful pick_place episodes, each rebuilt from its seed for the positions."""
+def measure_offsets(dataset_dir: str | Path, task: str = TASK, episodes: int = 60) -> dict:
+    """Median (recorded grasp target - grasp anchor) and (release target - release anchor), in metres in the
+    anchors' frame (datagen/view_anchors.py), over up to `episodes` successful episodes of `task`, each
+    rebuilt from its seed for the anchors."""
     from datagen.store import Dataset
 
+    if task not in FAMILIES:
+        raise ValueError(f"views know the families {', '.join(FAMILIES)}, not {task!r}")
     store = Dataset(dataset_dir)
     grasp, release = [], []
     for row in store.episodes():
         meta = store.meta(row["index"])
-        if meta["task"] != TASK or not episode_success(meta):
+        if meta["task"] != task or not episode_success(meta):
             continue
         arrays = store.window(row["index"], fields=("action", "subtask"))
         action = arrays["action"]
         close, opened = grasp_and_release_steps(action, arrays["subtask"])
         h = meta.get("holdout") or {}
-        ep = build_episode(TASK, meta["seed"], "heavy", meta.get("fidelity", "fast"),
+        ep = build_episode(task, meta["seed"], "heavy", meta.get("fidelity", "fast"),
                            holdout=Holdout(tuple(h.get("colors", ())), tuple(h.get("shapes", ()))))
-        obj, bin_, _ = _points(ep)
-        grasp.append(action[close, :3] - obj)
-        release.append(action[opened, :3] - bin_)
+        a = anchors(ep)
+        grasp.append(a.frame.T @ (action[close, :3] - a.grasp))
+        release.append(a.frame.T @ (action[opened, :3] - a.release))
         if len(grasp) == episodes:
             break
     if not grasp:
-        raise ValueError(f"{dataset_dir}: no successful {TASK} episode to measure the label offsets on")
+        raise ValueError(f"{dataset_dir}: no successful {task} episode to measure the label offsets on; "
+                         f"record some (sudd datagen --task {task}) or leave {task} out of the views")
     return {"grasp": np.median(grasp, axis=0), "release": np.median(release, axis=0), "episodes": len(grasp)}
 
 
@@ -98,15 +90,18 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
 
 
 def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout(), fidelity: str = "fast",
-                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0) -> dict:
-    """`views` labelled views of the heavy-DR scene of `seed` (the same seed always gives the same views), then
-    up to `carry` views with the object in the closed fingers on its way to the bin (datagen/views_carry.py;
-    none when the scene's grasp fails)."""
-    ep = build_episode(TASK, seed, "heavy", fidelity, holdout=holdout)
+                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK) -> dict:
+    """`views` labelled views of the heavy-DR `task` scene of `seed` (the same seed always gives the same
+    views), then for pick_place up to `carry` views with the object in the closed fingers on its way to the
+    bin (datagen/views_carry.py; none when the scene's grasp fails)."""
+    if carry and task != "pick_place":
+        raise ValueError(f"carrying views are pick_place's (an object on its way to a bin), not {task}'s")
+    ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5])
-    obj, bin_, yaw = _points(ep)
-    grasp, release = obj + offsets["grasp"], bin_ + offsets["release"]
+    a = anchors(ep)
+    yaw = a.yaw
+    grasp, release = a.points(offsets)
     recorder = Recorder(ep, image_size=image_size)
     kin = recorder.kin
     q_home = world.arm_q()
@@ -134,7 +129,8 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     n = len(proprio)
     return {"scene": images["scene"], "wrist": images["wrist"], "proprio": proprio,
             "points": np.tile(np.stack([grasp, release]).astype(np.float32), (n, 1, 1)),
-            "grasp_yaw": np.full(n, yaw, np.float32), "footprint_period": np.full(n, _period(ep), np.float32),
+            "grasp_yaw": np.full(n, yaw, np.float32), "footprint_period": np.full(n, a.period, np.float32),
+            "frame": np.tile(a.frame.astype(np.float32), (n, 1, 1)), "task": [task] * n,
             "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n}
 
 
@@ -160,25 +156,27 @@ def _carry_views(ep, recorder, seed: int, views: int, grasp, release, yaw: float
 
 
 def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdout: Holdout = Holdout(),
-             progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0) -> list[Path]:
-    """Render views of every seed's scene into shards of SHARD scenes under out_dir; returns the shards."""
+             progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0,
+             task: str = TASK) -> list[Path]:
+    """Render views of every seed's `task` scene into shards of SHARD scenes under out_dir; returns the shards."""
     from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     shards = []
     starts = range(seeds.start, seeds.stop, SHARD)
-    bar = tqdm(total=len(seeds), desc="views", unit="scene", disable=not progress)
+    bar = tqdm(total=len(seeds), desc=f"views {task}", unit="scene", disable=not progress)
     for start in starts:
-        path = out / f"views_{start:08d}.npz"
+        path = out / f"views_{task}_{start:08d}.npz"
         chunk = range(start, min(start + SHARD, seeds.stop))
         if not path.exists():
             parts = []
             for seed in chunk:
-                parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry))
+                parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry, task=task))
                 bar.update(1)
-            merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "instruction"}
-            merged["instruction"] = np.array([t for p in parts for t in p["instruction"]])
+            merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("instruction", "task")}
+            for k in ("instruction", "task"):
+                merged[k] = np.array([t for p in parts for t in p[k]])
             tmp = out / f".{path.stem}.partial.npz"  # hidden from load()'s glob until complete
             np.savez(tmp, offset_grasp=offsets["grasp"], offset_release=offsets["release"], **merged)
             tmp.rename(path)
@@ -189,11 +187,7 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
     return shards
 
 
-def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
-    """Every shard of a views directory (or of several), concatenated. With `offsets` (measure_offsets of the
-    episodes a policy trains on), the labels are moved from the offsets each shard was rendered with to these:
-    the images depend on the grasp point only through the sampled arm poses, so the same views serve data
-    whose demonstrations release elsewhere (over a bin's rim instead of down in it)."""
+def _shards(views_dir: str | Path | list) -> list[Path]:
     dirs = [views_dir] if isinstance(views_dir, (str, Path)) else list(views_dir)
     paths = []
     for d in dirs:
@@ -201,10 +195,39 @@ def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
         if not found:
             raise FileNotFoundError(f"{d}: no views_*.npz shards (make them with `sudd views`)")
         paths += found
-    parts = [dict(np.load(p)) for p in paths]
-    if offsets is not None:
-        for p in parts:
-            shift = np.stack([offsets["grasp"] - p["offset_grasp"], offsets["release"] - p["offset_release"]])
-            p["points"] = (p["points"] + shift).astype(p["points"].dtype)
+    return paths
+
+
+def _shard_task(shard: dict) -> str:
+    return str(shard["task"][0]) if "task" in shard else TASK
+
+
+def tasks(views_dir: str | Path | list) -> list[str]:
+    """The task families the views directory (or directories) holds, sorted."""
+    found = set()
+    for path in _shards(views_dir):
+        with np.load(path) as shard:
+            found.add(_shard_task(shard))
+    return sorted(found)
+
+
+def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
+    """Every shard of a views directory (or of several), concatenated. With `offsets` ({family:
+    measure_offsets of that family's episodes a policy trains on}), the labels are moved from the offsets each
+    shard was rendered with to these: the images depend on the grasp point only through the sampled arm
+    poses, so the same views serve data whose demonstrations release elsewhere (over a bin's rim instead of
+    down in it). Shards from before the families came are pick_place's, in the world frame."""
+    parts = [dict(np.load(p)) for p in _shards(views_dir)]
+    for p in parts:
+        n = len(p["points"])
+        task = _shard_task(p)
+        p.setdefault("task", np.array([task] * n))
+        p.setdefault("frame", np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)))
+        if offsets is not None:
+            if task not in offsets:
+                raise ValueError(f"views of {task} scenes, but no label offsets for {task} (offsets for "
+                                 f"{', '.join(sorted(offsets)) or 'no family'}): train on data with {task} episodes")
+            shift = np.stack([offsets[task]["grasp"] - p["offset_grasp"], offsets[task]["release"] - p["offset_release"]])
+            p["points"] = (p["points"] + np.einsum("nij,kj->nki", p["frame"], shift)).astype(p["points"].dtype)
     keys = set.intersection(*(set(p) for p in parts))  # shards rendered before the grasp yaw was kept lack it
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k in keys and not k.startswith("offset_")}

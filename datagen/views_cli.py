@@ -1,8 +1,10 @@
-"""`sudd views`: render labelled views of heavy-DR pick_place scenes (no physics, no planning) to pretrain the
-policy's image encoder to find the named object (see datagen/views.py, then `sudd pretrain`).
+"""`sudd views`: render labelled views of heavy-DR scenes of one task family (no physics, no planning) to
+pretrain the policy's image encoder to find what the instruction names (see datagen/views.py, then
+`sudd pretrain`): the object and its bin (pick_place), the two blocks (stack), the drawer's handle
+(drawer_open, drawer_close, drawer_put). Render each family into the same directory, one command each.
 
-The labels' offsets (where an episode closes and opens the gripper, relative to the object and the bin) are
-measured on recorded episodes (--offsets-from). Shards of 50 scenes land as they finish; re-running the same
+The labels' offsets (where an episode closes and opens the gripper, relative to the object and the bin, the
+blocks, the handle) are measured on recorded episodes of the family (--offsets-from). Shards of 50 scenes land as they finish; re-running the same
 command skips the shards already there. Hold out the same colours as the episode data, so the held-out
 evaluation stays held out.
 """
@@ -20,7 +22,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example:\n  sudd views --out out/views --scenes 3000 --seed-offset 200000 --offsets-from out/data "
                "--holdout-color purple\n  sudd views --out out/views_carry --scenes 2000 --views 1 --carry-views 4 "
-               "--seed-offset 203000 --offsets-from out/data --holdout-color purple")
+               "--seed-offset 203000 --offsets-from out/data --holdout-color purple\n"
+               "  sudd views --task drawer_open --out out/views --scenes 600 --seed-offset 210000 "
+               "--offsets-from out/data_do --holdout-color purple")
+    v.add_argument("--task", default="pick_place",
+                   help="task family: pick_place (default), stack, drawer_open, drawer_close or drawer_put")
     v.add_argument("--out", type=Path, required=True, help="views directory (created; resumed if present)")
     v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
     v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
@@ -30,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--seed-offset", type=int, default=200000,
                    help="first seed (default 200000); keep it away from training and evaluation seeds")
     v.add_argument("--offsets-from", type=Path, required=True, metavar="DATA",
-                   help="an episode dataset with successful pick_place episodes to measure the label offsets on")
+                   help="an episode dataset with successful episodes of --task to measure the label offsets on")
     v.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                    help="never use this object colour (repeatable; as for sudd datagen)")
     v.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
@@ -40,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _views(args) -> int:
+    from datagen.view_anchors import FAMILIES
     from datagen.views import generate, measure_offsets
     from sim.config import load_config
     from sim.tasks import Holdout
@@ -48,10 +55,15 @@ def _views(args) -> int:
         raise ValueError(f"--scenes and --views must be >= 1 and --carry-views >= 0 (got {args.scenes}, "
                          f"{args.views}, {args.carry_views})")
     holdout = load_config(Holdout, {"colors": args.holdout_color, "shapes": args.holdout_shape})
-    offsets = measure_offsets(args.offsets_from)
+    if args.task not in FAMILIES:
+        raise ValueError(f"--task {args.task}: views label the families {', '.join(FAMILIES)}; pick one of them")
+    if args.carry_views and args.task != "pick_place":
+        raise ValueError(f"--carry-views: carrying views are pick_place's (an object on its way to a bin), "
+                         f"not {args.task}'s; leave --carry-views out")
+    offsets = measure_offsets(args.offsets_from, args.task)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
-                      holdout, carry=args.carry_views)
-    summary = {"out": str(args.out), "shards": len(shards), "scenes": args.scenes, "views_per_scene": args.views,
+                      holdout, carry=args.carry_views, task=args.task)
+    summary = {"out": str(args.out), "task": args.task, "shards": len(shards), "scenes": args.scenes, "views_per_scene": args.views,
                "carry_views_per_scene": args.carry_views,
                "offsets_m": {k: [round(float(x), 4) for x in offsets[k]] for k in ("grasp", "release")},
                "offsets_episodes": int(offsets["episodes"])}

@@ -51,9 +51,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     pre = sub.add_parser(
         "pretrain", help="pretrain the image encoders and aux head on rendered views (sudd views)",
-        description="Train the policy's image encoders and aux head to locate the named object on rendered\n"
-                    "views (policy/pretrain.py), validating on the episode dataset's held-out episodes; then\n"
-                    "start a policy run from it with `sudd train --init-from RUN`. Use the policy's config.",
+        description="Train the policy's image encoders and aux head to locate what the instruction names on\n"
+                    "rendered views of every family they hold (policy/pretrain.py), validating on the episode\n"
+                    "dataset's held-out episodes; then start a policy run from it with\n"
+                    "`sudd train --init-from RUN`. Use the policy's config.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example:\n  sudd pretrain out/views --data out/data --out runs/pre --config "
                "policy/configs/demo_pick_place.toml --steps 3000\n"
@@ -67,8 +68,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     pre.add_argument("--steps", type=int, required=True, help="optimizer steps")
     pre.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
     pre.add_argument("--init-from", type=Path, metavar="RUN",
-                     help="go on from an earlier pretrain run on the same --data (its encoders and head; a fresh "
-                          "optimizer and schedule of --steps)")
+                     help="go on from an earlier pretrain run (its encoders and head; a fresh optimizer and "
+                          "schedule of --steps), or from a bundle (e.g. policy/bundles/demo with --config "
+                          "policy/bundles/demo) to teach its encoders more families' views")
     pre.add_argument("--head-only", action="store_true",
                      help="with --init-from: train the aux head alone, its encoders frozen (e.g. on carrying "
                           "views, to find the bin while carrying without moving the features the grasp reads; "

@@ -39,6 +39,7 @@ import torch.nn.functional as F
 
 from datagen.views import load as load_views
 from datagen.views import measure_offsets
+from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, jitter_factors
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
@@ -108,8 +109,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
-    schedule), for a longer pretraining without redoing the first part. Its --data may differ: the head reads
-    the images and the instruction only, and the views are relabelled for this --data (module doc).
+    schedule), for a longer pretraining without redoing the first part; or a policy bundle (policy/bundles/demo),
+    to teach its encoders and head more families' views (the config must be the bundle's). Its --data may
+    differ: the head reads the images and the instruction only, and the views are relabelled for this --data
+    (module doc). The run keeps the source's normalization stats, which its encoders were trained with.
     head_only: train the aux head alone, the encoders as init_from left them (module doc).
     """
     from tqdm import tqdm
@@ -127,25 +130,29 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
         from policy.text import default_embedder
 
         embedder = default_embedder()
+    if init_from is not None:
+        from policy.bundle_import import is_bundle
+
+        info = Path(init_from) / "dataset.json"
+        if not (is_bundle(init_from) or (info.is_file() and "pretrain" in json.loads(info.read_text()))):
+            raise ValueError(f"--init-from {init_from}: neither a `sudd pretrain` run (its dataset.json has no "
+                             "'pretrain') nor a policy bundle; go on from one of those, or start afresh")
     split = "train" if cfg.val_fraction > 0 else None
     fit = PolicyDataset(data_dir, cfg, train=False, embedder=embedder, uint8_images=True, split=split,
-                        max_cache_bytes=0)
+                        max_cache_bytes=0,
+                        normalizer=None if init_from is None else warm_start.source_normalizer(init_from))
     validator = None
     if split:
         val = PolicyDataset(data_dir, cfg, train=False, normalizer=fit.normalizer, embedder=embedder,
                             uint8_images=True, split="val", max_cache_bytes=0)
         validator = Validator(val, fit, seed=cfg.seed, chunks=False)
-    offsets = measure_offsets(data_dir)
+    offsets = {task: measure_offsets(data_dir, task) for task in view_tasks(views_dir)}
     views = Views(views_dir, cfg, fit.normalizer, embedder, offsets)
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
     model.set_proprio_stats(fit.normalizer)
     warm = None
     if init_from is not None:
-        info = Path(init_from) / "dataset.json"
-        if not info.is_file() or "pretrain" not in json.loads(info.read_text()):
-            raise ValueError(f"--init-from {init_from}: not a `sudd pretrain` run (its dataset.json has no "
-                             "'pretrain'); go on from a pretrain run, or start afresh")
         warm = warm_start.load_into(model, init_from)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     trained = ("aux_head",) if head_only else PRETRAINED
@@ -160,7 +167,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     fit.normalizer.save(run_dir / "stats.npz")
-    offsets_m = {k: np.round(offsets[k], 4).tolist() for k in ("grasp", "release")}
+    offsets_m = {t: {k: np.round(o[k], 4).tolist() for k in ("grasp", "release")} for t, o in offsets.items()}
     info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
                                       "offsets_m": offsets_m, "head_only": head_only})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))

@@ -49,7 +49,7 @@ def test_sampled_poses_head_for_the_object_and_point_down():
 
 def test_shards_are_written_whole_and_a_rerun_keeps_them(views_dir):
     shards = sorted(views_dir.glob("*.npz"))
-    assert [p.name for p in shards] == ["views_00000300.npz"]
+    assert [p.name for p in shards] == ["views_pick_place_00000300.npz"]
     before = shards[0].stat().st_mtime_ns
     generate(views_dir, range(300, 302), 3, OFFSETS, progress=False, image_size=SIZE)
     assert shards[0].stat().st_mtime_ns == before
@@ -59,7 +59,7 @@ def test_shards_are_written_whole_and_a_rerun_keeps_them(views_dir):
 
 def test_views_are_relabelled_for_the_offsets_of_another_dataset(views_dir):
     other = {"grasp": OFFSETS["grasp"] + [0.01, 0.0, 0.0], "release": OFFSETS["release"] + [0.0, 0.0, 0.05]}
-    a, b = load(views_dir), load(views_dir, other)
+    a, b = load(views_dir), load(views_dir, {"pick_place": other})
     np.testing.assert_allclose(b["points"] - a["points"],
                                np.broadcast_to([[0.01, 0.0, 0.0], [0.0, 0.0, 0.05]], a["points"].shape), atol=1e-6)
     assert np.array_equal(a["scene"], b["scene"]) and b["points"].dtype == a["points"].dtype
@@ -127,10 +127,10 @@ def test_pretraining_goes_on_from_an_earlier_pretraining_run_only(views_dir, tmp
     assert json.loads((tmp_path / "on" / "warm_start.json").read_text())["step"] == 20
     # the labels were moved to the offsets measured on --data, and the run says which
     measured = measure_offsets(data)
-    said = json.loads((tmp_path / "on" / "dataset.json").read_text())["pretrain"]["offsets_m"]
+    said = json.loads((tmp_path / "on" / "dataset.json").read_text())["pretrain"]["offsets_m"]["pick_place"]
     np.testing.assert_allclose(said["release"], measured["release"], atol=1e-4)
     (tmp_path / "pre" / "dataset.json").write_text("{}")
-    with pytest.raises(ValueError, match="not a `sudd pretrain` run"):
+    with pytest.raises(ValueError, match="neither a `sudd pretrain` run"):
         pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
                  embedder=hash_embedder, init_from=tmp_path / "pre")
 
