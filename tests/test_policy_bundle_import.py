@@ -79,3 +79,31 @@ def test_the_shipped_bundle_rebuilds_in_torch():
     assert imported["not_in_graphs"] == []
     assert imported["parameters"] == manifest["params"]["policy_total"]
     assert imported["parity"]["step_max_abs_err"] <= 1e-4 and imported["parity"]["chunk_max_abs_err"] <= 1e-3
+
+
+def test_pretraining_from_a_bundle_starts_from_its_encoders_and_keeps_its_stats(exported, tmp_path):
+    """`sudd pretrain --init-from BUNDLE`: more families' views for a shipped policy's encoders, which were
+    trained with the bundle's normalization, so the run keeps that rather than fitting the data's."""
+    import numpy as np
+
+    from datagen.views import generate
+    from policy.config import load_policy_config
+    from policy.data import PolicyDataset
+    from policy.pretrain import pretrain
+
+    views = tmp_path / "views"
+    offsets = {"grasp": np.zeros(3), "release": np.array([0.0, 0.0, 0.06])}
+    generate(views, range(300, 301), 2, offsets, progress=False, image_size=tuple(TINY["image_size"]))
+    other = synthetic_dataset(tmp_path / "other", episodes=9, smooth=True)  # not the data the bundle saw
+    s = pretrain(views, other, exported / "bundle", tmp_path / "pre", 2, {"lr": 0.0, "warmup_steps": 0},
+                 threads=1, progress=False, embedder=hash_embedder, init_from=exported / "bundle")
+    src, normalizer, _ = model_from_bundle(exported / "bundle")
+    after = torch.load(s["checkpoint"], weights_only=False)["ema"]["model"]
+    for name, value in src.state_dict().items():
+        if name.startswith(("obs_encoder.images.", "aux_head.")):
+            torch.testing.assert_close(after[name], value, msg=name)
+    kept = np.load(tmp_path / "pre" / "stats.npz")
+    np.testing.assert_array_equal(kept["proprio_scale"], normalizer.proprio_scale)
+    fitted = PolicyDataset(other, load_policy_config(exported / "bundle"), train=False, embedder=hash_embedder)
+    assert not np.array_equal(fitted.normalizer.proprio_scale, normalizer.proprio_scale)  # what a fit would give
+    assert json.loads((tmp_path / "pre" / "warm_start.json").read_text())["bundle"] is True
