@@ -203,6 +203,7 @@ class PolicyDataset(torch.utils.data.Dataset):
             self.grasp_yaw = [yaw_of(a["action"][c[:, 0], 3:9]) for a, c in zip(low, self.cycle)]
             self.has_axis = [episode_target_has_axis(self.store.meta(i)) for i in self.episodes]
         self.lengths = [len(a["action"]) for a in low]
+        self.tasks = [self.store.meta(i)["task"] for i in self.episodes]
         self._language(embedder)
         # no window whose chunk holds a step of an injected failure (datagen.schema.PERTURBED): the data shows
         # how to recover from one, never how to make one
@@ -305,6 +306,10 @@ class PolicyDataset(torch.utils.data.Dataset):
                 x = color_jitter(x, torch.from_numpy(jitter)) if self.train else x
             images[camera] = x
         return images, jitter
+
+    def task_of(self, index: int) -> str:
+        """The task family of the episode sample `index` comes from."""
+        return self.tasks[self.index[index][0]]
 
     def before_grasp(self, index: int) -> bool:
         """Whether the sample's newest observation comes before its episode closes the gripper: the frames on

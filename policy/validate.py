@@ -21,7 +21,9 @@ centre crops:
             more off it: does it see which way the bar lies (nearer, the label is about "no turn", and a head
             that always says so would score well); guess_axis_deg: that head's error on the same samples
 
-each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples), and
+each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples); on data of
+several task families also val_pregrasp_cm.<family> and val_chunk_cm.<family> (held-out samples of that family
+only), because a mixed median hides a family the head does not see (a drawer handle among pick_place scenes); and
 guess_grasp_cm: the error of always answering the training samples' mean grasp point, the scale against
 which a grasp_cm reads (it differs between aux_target_frame base and tcp: 18.8 vs 13.3 cm on 500 episodes).
 """
@@ -37,6 +39,15 @@ from policy.grasp_axis import angle_error_deg
 
 
 UNALIGNED_DEG = 20.0
+
+
+def _by_family(name: str, measure: str, values: np.ndarray, family: np.ndarray, where: np.ndarray) -> dict:
+    """{name_measure.family: median} over the samples `where` of each family, for held-out samples of several."""
+    families = sorted(set(family.tolist()))
+    if name != "val" or len(families) < 2:
+        return {}
+    return {f"{name}_{measure}.{f}": float(np.median(values[where & (family == f)]))
+            for f in families if (where & (family == f)).any()}
 
 
 class Validator:
@@ -63,6 +74,7 @@ class Validator:
             losses, errors, chunk, axis = [], [], [], []
             before = np.array([ds.before_grasp(int(i)) for i in idx])
             carrying = np.array([ds.carrying(int(i)) for i in idx])
+            family = np.array([ds.task_of(int(i)) for i in idx])
             for lo in range(0, len(idx), self.batch):
                 batch = to_device(default_collate([ds[int(i)] for i in idx[lo:lo + self.batch]]), device)
                 batch = finish_images(batch) if ds.uint8_images else batch
@@ -84,12 +96,15 @@ class Validator:
                                      batch["aux"][:, 6:8].cpu().numpy()))
             out[f"{name}_loss"] = float(torch.cat(losses).mean())
             if chunk:
-                out[f"{name}_chunk_cm"] = float(np.median(np.concatenate(chunk)))
+                chunk = np.concatenate(chunk)
+                out[f"{name}_chunk_cm"] = float(np.median(chunk))
+                out.update(_by_family(name, "chunk_cm", chunk, family, np.ones(len(idx), bool)))
             if errors:
                 miss = np.linalg.norm(np.concatenate(errors), axis=2) * 100  # (samples, grasp|release)
                 out[f"{name}_grasp_cm"] = float(np.median(miss[:, 0]))
                 if before.any():
                     out[f"{name}_pregrasp_cm"] = float(np.median(miss[before, 0]))
+                    out.update(_by_family(name, "pregrasp_cm", miss[:, 0], family, before))
                 if carrying.any():
                     out[f"{name}_release_cm"] = float(np.median(miss[carrying, 1]))
                 out["guess_grasp_cm"] = self.guess_cm

@@ -131,6 +131,27 @@ def test_chunk_error_is_the_distance_of_the_sampled_positions_from_the_recorded(
     assert got["val_chunk_cm"] == pytest.approx(want, rel=1e-4) and got["fit_chunk_cm"] == pytest.approx(want, rel=1e-4)
 
 
+def test_validation_on_several_families_reports_each_familys_medians(tmp_path, monkeypatch):
+    from policy.validate import Validator
+
+    data = synthetic_dataset(tmp_path / "data", episodes=8, tasks=("pick_place", "stack"), smooth=True)
+    cfg = load_policy_config(TINY, {"val_fraction": 0.3, "aux_target_weight": 1.0})
+    val = PolicyDataset(data, cfg, train=False, embedder=hash_embedder, split="val")
+    fit = PolicyDataset(data, cfg, train=False, embedder=hash_embedder, split="train", normalizer=val.normalizer)
+    check = Validator(val, fit, samples=48, batch=8)
+    real, per_sample = check._chunk_cm, []
+    monkeypatch.setattr(check, "_chunk_cm", lambda *a: per_sample.append(real(*a)) or per_sample[-1])
+    got = check(DiffusionPolicy(cfg), torch.device("cpu"))
+    ds, idx = check.sets["val"]
+    family = np.array([ds.task_of(int(i)) for i in idx])
+    assert all(f == ds.store.meta(ds.episodes[ds.index[int(i)][0]])["task"] for f, i in zip(family, idx))
+    chunk = np.concatenate(per_sample)[:len(idx)]  # the held-out samples come first
+    for f in ("pick_place", "stack"):
+        assert got[f"val_chunk_cm.{f}"] == pytest.approx(float(np.median(chunk[family == f])), rel=1e-6)
+        assert f"val_pregrasp_cm.{f}" in got and f"fit_chunk_cm.{f}" not in got
+    assert got["val_chunk_cm"] == pytest.approx(float(np.median(chunk)), rel=1e-6)
+
+
 def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     from policy.data import episode_success, is_validation
     from policy.validate import Validator
