@@ -86,3 +86,14 @@ def test_offsets_are_measured_per_family_and_an_unknown_one_is_named(tmp_path):
         measure_offsets(data, "pour")
     with pytest.raises(ValueError, match="carrying views are pick_place's"):
         scene_views(300, 1, PULL, image_size=SIZE, carry=1, task="drawer_open")
+
+
+def test_sudd_views_names_a_family_it_cannot_label_and_carrying_views_outside_pick_place(tmp_path, capsys):
+    from runtime.cli import main
+
+    base = ["views", "--out", str(tmp_path / "v"), "--scenes", "1", "--offsets-from", str(tmp_path)]
+    assert main(base + ["--task", "pour"]) == 2
+    assert "--task pour: views label the families pick_place, stack" in capsys.readouterr().err
+    assert main(base + ["--task", "drawer_open", "--carry-views", "2"]) == 2
+    assert "carrying views are pick_place's" in capsys.readouterr().err
+    assert not (tmp_path / "v").exists()  # nothing rendered
