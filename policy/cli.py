@@ -78,6 +78,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
+    val = sub.add_parser(
+        "validate", help="a run's or bundle's open-loop errors on a dataset's held-out episodes, per family",
+        description="Hold a trained run (its EMA weights) or a bundle to the held-out episodes of an episode\n"
+                    "dataset, as training validates (policy/validate.py): the aux head's grasp point before the\n"
+                    "grasp, the release point while carrying, the sampled chunks against the recorded ones; on\n"
+                    "data of several families each family's too. E.g. a pick_place bundle on five families' data.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example:\n  sudd validate policy/bundles/demo --data out/data_mt3 --val-fraction 0.1")
+    val.add_argument("model", type=Path, help="a run directory (sudd train/pretrain --out) or a bundle")
+    val.add_argument("--data", type=Path, required=True, help="the episode dataset to validate on")
+    val.add_argument("--samples", type=int, default=1024, help="held-out samples (default 1024)")
+    val.add_argument("--val-fraction", type=float, default=None,
+                     help="which episodes are held out (default: the model's own val_fraction)")
+    val.add_argument("--json", action="store_true", help="print the figures as JSON")
+    val.set_defaults(func=_validate)
+
     orc = sub.add_parser(
         "oracle-eval", help="closed-loop pick_place episodes with the aux head's points replaced by the truth",
         description="Split a policy's failures into perception and control (policy/oracle_eval.py): run the\n"
@@ -189,6 +205,21 @@ def _pretrain(args) -> int:
           f"{val.get('val_release_cm', float('nan')):.1f} cm off while carrying; "
           + (f"grasp yaw {val['val_axis_deg']:.0f} deg off on bars; " if "val_axis_deg" in val else "")
           + f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
+    return 0
+
+
+def _validate(args) -> int:
+    from policy.validate import validate_model
+
+    if args.samples < 1:
+        raise ValueError(f"--samples must be >= 1, got {args.samples}")
+    out = {k: round(v, 3) for k, v in validate_model(args.model, args.data, args.samples, args.val_fraction).items()
+           if k.startswith("val_") or k.startswith("guess_")}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        for key, value in out.items():
+            print(f"{key:36s} {value:8.2f}")
     return 0
 
 

@@ -138,3 +138,41 @@ class Validator:
         a = np.zeros((len(p), ds.cfg.action_dim), np.float32)
         a[:, :3] = p
         return self.normalizer.unnormalize_action(a)[:, :3]
+
+
+def validate_model(source, data, samples: int = 1024, val_fraction: float | None = None, threads: int | None = None,
+                   embedder=None) -> dict:
+    """The measures above for a trained run's EMA model or a bundle's (rebuilt from its graphs) on the held-out
+    episodes of `data` (val_fraction: the source's, unless given; normalized with the source's stats): a model
+    held to data it did not train on, e.g. a bundle of one family to the episodes of five. A `sudd pretrain`
+    run's denoiser never trained: its chunks are not measured."""
+    import dataclasses
+    import json
+    from pathlib import Path
+
+    from policy.bundle_import import is_bundle, model_from_bundle
+    from policy.normalize import Normalizer
+    from policy.train import load_run_model
+
+    if threads:
+        torch.set_num_threads(threads)
+    pretrained_only = False
+    if is_bundle(source):
+        model, normalizer, _ = model_from_bundle(source)
+    else:
+        model, _, _ = load_run_model(source)
+        normalizer = Normalizer.load(Path(source) / "stats.npz")
+        info = Path(source) / "dataset.json"
+        pretrained_only = info.is_file() and "pretrain" in json.loads(info.read_text())
+    cfg = model.cfg if val_fraction is None else dataclasses.replace(model.cfg, val_fraction=val_fraction)
+    if not 0.0 < cfg.val_fraction <= 0.5:
+        raise ValueError(f"{source} was trained with val_fraction {cfg.val_fraction}: no episodes of its own are "
+                         "held out; give a val_fraction in (0, 0.5] (those episodes may include trained ones)")
+    if embedder is None:
+        from policy.text import default_embedder
+
+        embedder = default_embedder()
+    kw = dict(train=False, normalizer=normalizer, embedder=embedder, uint8_images=True, max_cache_bytes=0)
+    val = PolicyDataset(data, cfg, split="val", **kw)
+    fit = PolicyDataset(data, cfg, split="train", **kw)
+    return Validator(val, fit, samples=samples, chunks=not pretrained_only)(model.eval(), torch.device("cpu"))

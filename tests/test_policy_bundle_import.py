@@ -107,3 +107,20 @@ def test_pretraining_from_a_bundle_starts_from_its_encoders_and_keeps_its_stats(
     fitted = PolicyDataset(other, load_policy_config(exported / "bundle"), train=False, embedder=hash_embedder)
     assert not np.array_equal(fitted.normalizer.proprio_scale, normalizer.proprio_scale)  # what a fit would give
     assert json.loads((tmp_path / "pre" / "warm_start.json").read_text())["bundle"] is True
+
+
+def test_a_bundle_is_validated_on_another_datasets_held_out_episodes_family_by_family(exported, tmp_path, capsys):
+    import numpy as np
+
+    from policy.validate import validate_model
+    from runtime.cli import main
+
+    data = synthetic_dataset(tmp_path / "five", episodes=10, tasks=("pick_place", "stack"), smooth=True)
+    got = validate_model(exported / "bundle", data, samples=64, val_fraction=0.5, embedder=hash_embedder)
+    assert {"val_chunk_cm.pick_place", "val_chunk_cm.stack", "val_pregrasp_cm.pick_place"} <= set(got)
+    assert all(np.isfinite(v) for v in got.values())
+    # the run it was exported from gives the same figures (fp16 weights: to a few hundredths of a cm)
+    run = validate_model(exported / "run", data, samples=64, val_fraction=0.5, embedder=hash_embedder)
+    assert run["val_pregrasp_cm"] == pytest.approx(got["val_pregrasp_cm"], abs=0.05)
+    assert main(["validate", str(exported / "bundle"), "--data", str(data)]) == 2  # trained on every episode
+    assert "no episodes of its own are held out; give a val_fraction" in capsys.readouterr().err
