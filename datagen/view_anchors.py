@@ -26,7 +26,9 @@ from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 HANDLE = f"{CABINET}/handle_site"
 DRAWERS = ("drawer_open", "drawer_close", "drawer_put")
-FAMILIES = ("pick_place", "stack") + DRAWERS
+# the families that carry an object from a grasp to a release: the params naming it and where it goes
+CARRIES = {"pick_place": ("target", "bin"), "stack": ("top", "bottom")}
+FAMILIES = tuple(CARRIES) + DRAWERS
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,7 @@ class Anchors:
     frame: np.ndarray  # (3, 3) rotation world <- anchor frame: offsets are in this frame
     yaw: float  # the grasp's yaw (fingers close along it)
     period: float  # the grasped thing's footprint period (0: round, or no axis to label)
+    carried: str | None = None  # the body carried from grasp to release (datagen/views_carry.py); None: a handle
 
     def points(self, offsets: dict) -> tuple[np.ndarray, np.ndarray]:
         """The grasp and release points for `offsets` ({"grasp", "release"} in the anchor frame)."""
@@ -47,7 +50,7 @@ def _object_pair(ep, picked: str, goal: str) -> Anchors:
     name = ep.instance.params[picked]
     obj = ep.instance.obj(name)
     return Anchors(state.position(name), state.position(ep.instance.params[goal]), np.eye(3),
-                   float(grasp_yaw(obj, state.rotation(name))), float(footprint_period(obj) or 0.0))
+                   float(grasp_yaw(obj, state.rotation(name))), float(footprint_period(obj) or 0.0), name)
 
 
 def _drawer(ep) -> Anchors:
@@ -62,10 +65,8 @@ def _drawer(ep) -> Anchors:
 def anchors(ep) -> Anchors:
     """The anchors of a built episode's scene (sim.build.build_episode), as it is before anything moves."""
     family = ep.instance.family
-    if family == "pick_place":
-        return _object_pair(ep, "target", "bin")
-    if family == "stack":
-        return _object_pair(ep, "top", "bottom")
+    if family in CARRIES:
+        return _object_pair(ep, *CARRIES[family])
     if family in DRAWERS:
         return _drawer(ep)
     raise ValueError(f"no view labels for task family {family!r}; views know {', '.join(FAMILIES)}")

@@ -15,7 +15,7 @@ the object and the bin, the two blocks, the handle) plus offsets in the anchor's
 episodes of the family (`measure_offsets`: median of the recorded grasp/release target minus the anchor), so
 the labels mean what the policy's own aux target means; with them the grasp yaw and the footprint period, for
 the grasp-axis label (policy/grasp_axis.py). Carrying views (the pick_place object held on its way to the bin,
-`carry`) are datagen/views_carry.py's.
+`carry`; the stacked block on its way to the other too) are datagen/views_carry.py's.
 
 Shards of `SHARD` scenes of one family are written as they finish (`views_<family>_<first seed>.npz`), so an interrupted run keeps
 what it made and a rerun skips the shards already there.
@@ -29,7 +29,7 @@ import numpy as np
 
 from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
-from datagen.view_anchors import FAMILIES, anchors
+from datagen.view_anchors import CARRIES, FAMILIES, anchors
 from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
@@ -92,10 +92,11 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
 def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout(), fidelity: str = "fast",
                 image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK) -> dict:
     """`views` labelled views of the heavy-DR `task` scene of `seed` (the same seed always gives the same
-    views), then for pick_place up to `carry` views with the object in the closed fingers on its way to the
-    bin (datagen/views_carry.py; none when the scene's grasp fails)."""
-    if carry and task != "pick_place":
-        raise ValueError(f"carrying views are pick_place's (an object on its way to a bin), not {task}'s")
+    views), then for a family that carries an object (pick_place, stack) up to `carry` views with it in the
+    closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails)."""
+    if carry and task not in CARRIES:
+        raise ValueError(f"carrying views are of an object carried to its release ({', '.join(CARRIES)}), "
+                         f"not of {task}, whose grasp is a handle")
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5])
@@ -122,7 +123,7 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             world.forward()
             recorder.sample()
         if carry:
-            _carry_views(ep, recorder, seed, carry, grasp, release, yaw, q_home)
+            _carry_views(ep, recorder, seed, carry, a.carried, grasp, release, yaw, q_home)
         images, proprio = recorder.observations()
     finally:
         recorder.close()
@@ -134,9 +135,8 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n}
 
 
-def _carry_views(ep, recorder, seed: int, views: int, grasp, release, yaw: float, q_home) -> None:
+def _carry_views(ep, recorder, seed: int, views: int, target: str, grasp, release, yaw: float, q_home) -> None:
     rng = np.random.default_rng([int(seed), 0xCA77])  # its own stream: the approach views stay as they were
-    target = ep.instance.params["target"]
     yaw = nearest_half_turn(yaw, tool_yaw(recorder.kin.fk(q_home)))  # as the collector turns the wrist least
     in_tcp = grasp_in_hand(ep.world, recorder.kin, target, grasp, yaw, q_home)
     if in_tcp is None:

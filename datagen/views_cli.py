@@ -31,8 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
     v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
     v.add_argument("--carry-views", type=int, default=0, metavar="N",
-                   help="also N views per scene with the named object held on its way to the bin (default 0; "
-                        "see datagen/views_carry.py)")
+                   help="also N views per scene with the named object held on its way to its release (the bin, "
+                        "the block to stack on; pick_place and stack only; default 0; see datagen/views_carry.py)")
     v.add_argument("--seed-offset", type=int, default=200000,
                    help="first seed (default 200000); keep it away from training and evaluation seeds")
     v.add_argument("--offsets-from", type=Path, required=True, metavar="DATA",
@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _views(args) -> int:
-    from datagen.view_anchors import FAMILIES
+    from datagen.view_anchors import CARRIES, FAMILIES
     from datagen.views import generate, measure_offsets
     from sim.config import load_config
     from sim.tasks import Holdout
@@ -57,9 +57,9 @@ def _views(args) -> int:
     holdout = load_config(Holdout, {"colors": args.holdout_color, "shapes": args.holdout_shape})
     if args.task not in FAMILIES:
         raise ValueError(f"--task {args.task}: views label the families {', '.join(FAMILIES)}; pick one of them")
-    if args.carry_views and args.task != "pick_place":
-        raise ValueError(f"--carry-views: carrying views are pick_place's (an object on its way to a bin), "
-                         f"not {args.task}'s; leave --carry-views out")
+    if args.carry_views and args.task not in CARRIES:
+        raise ValueError(f"--carry-views: carrying views are of an object carried to its release "
+                         f"({', '.join(CARRIES)}), not of {args.task}, whose grasp is a handle; leave it out")
     offsets = measure_offsets(args.offsets_from, args.task)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
                       holdout, carry=args.carry_views, task=args.task)

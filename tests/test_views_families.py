@@ -84,16 +84,38 @@ def test_offsets_are_measured_per_family_and_an_unknown_one_is_named(tmp_path):
         measure_offsets(data, "stack")
     with pytest.raises(ValueError, match="not 'pour'"):
         measure_offsets(data, "pour")
-    with pytest.raises(ValueError, match="carrying views are pick_place's"):
+    with pytest.raises(ValueError, match="carrying views are of an object carried to its release"):
         scene_views(300, 1, PULL, image_size=SIZE, carry=1, task="drawer_open")
 
 
-def test_sudd_views_names_a_family_it_cannot_label_and_carrying_views_outside_pick_place(tmp_path, capsys):
+def test_sudd_views_names_a_family_it_cannot_label_and_carrying_views_of_a_handle(tmp_path, capsys):
     from runtime.cli import main
 
     base = ["views", "--out", str(tmp_path / "v"), "--scenes", "1", "--offsets-from", str(tmp_path)]
     assert main(base + ["--task", "pour"]) == 2
     assert "--task pour: views label the families pick_place, stack" in capsys.readouterr().err
     assert main(base + ["--task", "drawer_open", "--carry-views", "2"]) == 2
-    assert "carrying views are pick_place's" in capsys.readouterr().err
+    assert "whose grasp is a handle" in capsys.readouterr().err
     assert not (tmp_path / "v").exists()  # nothing rendered
+
+
+def test_stack_carrying_views_hold_the_top_block_on_its_way_to_the_other():
+    from datagen.recorder import TCP_OFFSET_Z
+    from datagen.view_anchors import anchors
+    from datagen.views_carry import grasp_in_hand, place_carried
+    from sim.kinematics import Kinematics
+
+    off = {"grasp": np.array([0.0, 0.0, 0.007]), "release": np.array([0.0, 0.0, 0.063])}
+    v = scene_views(401, 1, off, image_size=SIZE, carry=3, task="stack")
+    assert len(v["proprio"]) == 4  # home, then three carrying views
+    assert np.all((v["proprio"][1:, 9] > 0.2) & (v["proprio"][1:, 9] < 0.9))  # closed on a block
+    np.testing.assert_array_equal(v["points"][1:], np.broadcast_to(v["points"][0], (3, 2, 3)))
+    ep = build_episode("stack", 401, "heavy", "fast")
+    a = anchors(ep)
+    assert a.carried == ep.instance.params["top"]
+    kin = Kinematics.with_tcp_z(ep.world.variant, TCP_OFFSET_Z)
+    in_tcp = grasp_in_hand(ep.world, kin, a.carried, v["points"][0, 0], a.yaw, ep.world.arm_q())
+    T = ep.world.tcp_pose().copy()
+    T[:3, 3] = v["points"][0, 1] + [0.0, 0.0, 0.05]  # above the bottom block
+    place_carried(ep.world, kin, kin.ik(T, ep.world.arm_q()), a.carried, in_tcp)
+    assert StateView(ep.world).holding(a.carried)
