@@ -17,8 +17,8 @@ the labels mean what the policy's own aux target means; with them the grasp yaw 
 the grasp-axis label (policy/grasp_axis.py). Carrying views (the pick_place object held on its way to the bin,
 `carry`; the stacked block on its way to the other too) are datagen/views_carry.py's.
 
-Shards of `SHARD` scenes of one family are written as they finish (`views_<family>_<first seed>.npz`), so an interrupted run keeps
-what it made and a rerun skips the shards already there.
+Shards of `SHARD` scenes of one family are written as they finish (`views_<family>_<first seed>.npz`), so an
+interrupted run keeps what it made and a rerun skips the shards already there.
 """
 
 from __future__ import annotations
@@ -227,7 +227,8 @@ def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
             if task not in offsets:
                 raise ValueError(f"views of {task} scenes, but no label offsets for {task} (offsets for "
                                  f"{', '.join(sorted(offsets)) or 'no family'}): train on data with {task} episodes")
-            shift = np.stack([offsets[task]["grasp"] - p["offset_grasp"], offsets[task]["release"] - p["offset_release"]])
+            new = offsets[task]
+            shift = np.stack([new["grasp"] - p["offset_grasp"], new["release"] - p["offset_release"]])
             p["points"] = (p["points"] + np.einsum("nij,kj->nki", p["frame"], shift)).astype(p["points"].dtype)
     keys = set.intersection(*(set(p) for p in parts))  # shards rendered before the grasp yaw was kept lack it
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k in keys and not k.startswith("offset_")}

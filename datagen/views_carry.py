@@ -1,5 +1,8 @@
 """Carrying views: the named object held in the closed fingers, the arm on its way from the grasp to the
-release point above the named bin (see datagen/views.py for the views themselves).
+release point above the named bin, or above the block it is to be stacked on (see datagen/views.py for the
+views themselves). Stack's were added for the same reason as below: on carrying frames of unseen stack
+episodes the head's release point was 14 cm off (`sudd validate`), and the policy let the block go beside
+the other (9 of 20 seeds).
 
 Why: the approach views never show the arm carrying, so the pretrained encoder finds the object before the
 grasp (2.4 cm) but not the bin after it: on carrying frames of unseen episodes its release point is 13.5 cm

@@ -4,9 +4,9 @@ pretrain the policy's image encoder to find what the instruction names (see data
 (drawer_open, drawer_close, drawer_put). Render each family into the same directory, one command each.
 
 The labels' offsets (where an episode closes and opens the gripper, relative to the object and the bin, the
-blocks, the handle) are measured on recorded episodes of the family (--offsets-from). Shards of 50 scenes land as they finish; re-running the same
-command skips the shards already there. Hold out the same colours as the episode data, so the held-out
-evaluation stays held out.
+blocks, the handle) are measured on recorded episodes of the family (--offsets-from). Shards of 50 scenes land
+as they finish; re-running the same command skips the shards already there. Hold out the same colours as the
+episode data, so the held-out evaluation stays held out.
 """
 
 from __future__ import annotations
@@ -63,7 +63,8 @@ def _views(args) -> int:
     offsets = measure_offsets(args.offsets_from, args.task)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
                       holdout, carry=args.carry_views, task=args.task)
-    summary = {"out": str(args.out), "task": args.task, "shards": len(shards), "scenes": args.scenes, "views_per_scene": args.views,
+    summary = {"out": str(args.out), "task": args.task, "shards": len(shards), "scenes": args.scenes,
+               "views_per_scene": args.views,
                "carry_views_per_scene": args.carry_views,
                "offsets_m": {k: [round(float(x), 4) for x in offsets[k]] for k in ("grasp", "release")},
                "offsets_episodes": int(offsets["episodes"])}

@@ -24,8 +24,9 @@ centre crops:
 each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples); on data of
 several task families also val_pregrasp_cm.<family>, val_release_cm.<family> and val_chunk_cm.<family>
 (held-out samples of that family only), because a mixed median hides a family the head does not see (a drawer
-handle among pick_place scenes); and guess_grasp_cm: the error of always answering the training samples' mean grasp point, the scale against
-which a grasp_cm reads (it differs between aux_target_frame base and tcp: 18.8 vs 13.3 cm on 500 episodes).
+handle among pick_place scenes); and guess_grasp_cm: the error of always answering the training samples' mean
+grasp point, the scale against which a grasp_cm reads (it differs between aux_target_frame base and tcp: 18.8
+vs 13.3 cm on 500 episodes).
 """
 
 from __future__ import annotations
