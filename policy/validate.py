@@ -147,7 +147,7 @@ def validate_model(source, data, samples: int = 1024, val_fraction: float | None
     """The measures above for a trained run's EMA model or a bundle's (rebuilt from its graphs) on the held-out
     episodes of `data` (val_fraction: the source's, unless given; normalized with the source's stats): a model
     held to data it did not train on, e.g. a bundle of one family to the episodes of five. A `sudd pretrain`
-    run's denoiser never trained: its chunks are not measured."""
+    run's denoiser never trained: its chunks and denoising loss are left out."""
     import dataclasses
     import json
     from pathlib import Path
@@ -177,4 +177,5 @@ def validate_model(source, data, samples: int = 1024, val_fraction: float | None
     kw = dict(train=False, normalizer=normalizer, embedder=embedder, uint8_images=True, max_cache_bytes=0)
     val = PolicyDataset(data, cfg, split="val", **kw)
     fit = PolicyDataset(data, cfg, split="train", **kw)
-    return Validator(val, fit, samples=samples, chunks=not pretrained_only)(model.eval(), torch.device("cpu"))
+    out = Validator(val, fit, samples=samples, chunks=not pretrained_only)(model.eval(), torch.device("cpu"))
+    return {k: v for k, v in out.items() if not (pretrained_only and k.endswith("_loss"))}  # an untrained denoiser's

@@ -209,3 +209,15 @@ def test_views_load_from_several_directories_and_name_an_empty_one(views_dir, tm
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="empty: no views"):
         load([views_dir, tmp_path / "empty"])
+
+
+def test_validating_a_pretrain_run_leaves_out_what_its_untrained_denoiser_would_say(views_dir, tmp_path):
+    from policy.pretrain import pretrain
+    from policy.testing import TINY, hash_embedder, synthetic_dataset
+    from policy.validate import validate_model
+
+    data = synthetic_dataset(tmp_path / "data", episodes=6, smooth=True)
+    over = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "warmup_steps": 1}
+    pretrain(views_dir, data, dict(TINY), tmp_path / "pre", 2, over, threads=1, progress=False, embedder=hash_embedder)
+    got = validate_model(tmp_path / "pre", data, samples=32, val_fraction=0.5, embedder=hash_embedder)
+    assert "val_pregrasp_cm" in got and not any(k.endswith(("_loss", "chunk_cm")) for k in got)
