@@ -62,6 +62,13 @@ def _drawer(ep) -> Anchors:
     return Anchors(handle, shut, frame, float(np.arctan2(axis[1], axis[0])), 0.0)
 
 
+def check_carries(task: str) -> None:
+    """Refuse carrying views (datagen/views_carry.py) of a family that carries no object to a release."""
+    if task not in CARRIES:
+        raise ValueError(f"carrying views are of an object carried to its release ({', '.join(CARRIES)}), "
+                         f"not of {task}, whose grasp is a handle")
+
+
 def anchors(ep) -> Anchors:
     """The anchors of a built episode's scene (sim.build.build_episode), as it is before anything moves."""
     family = ep.instance.family

@@ -29,7 +29,7 @@ import numpy as np
 
 from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
-from datagen.view_anchors import CARRIES, FAMILIES, anchors
+from datagen.view_anchors import FAMILIES, anchors, check_carries
 from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
@@ -94,9 +94,8 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     """`views` labelled views of the heavy-DR `task` scene of `seed` (the same seed always gives the same
     views), then for a family that carries an object (pick_place, stack) up to `carry` views with it in the
     closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails)."""
-    if carry and task not in CARRIES:
-        raise ValueError(f"carrying views are of an object carried to its release ({', '.join(CARRIES)}), "
-                         f"not of {task}, whose grasp is a handle")
+    if carry:
+        check_carries(task)
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5])

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _views(args) -> int:
-    from datagen.view_anchors import CARRIES, FAMILIES
+    from datagen.view_anchors import FAMILIES, check_carries
     from datagen.views import generate, measure_offsets
     from sim.config import load_config
     from sim.tasks import Holdout
@@ -57,9 +57,11 @@ def _views(args) -> int:
     holdout = load_config(Holdout, {"colors": args.holdout_color, "shapes": args.holdout_shape})
     if args.task not in FAMILIES:
         raise ValueError(f"--task {args.task}: views label the families {', '.join(FAMILIES)}; pick one of them")
-    if args.carry_views and args.task not in CARRIES:
-        raise ValueError(f"--carry-views: carrying views are of an object carried to its release "
-                         f"({', '.join(CARRIES)}), not of {args.task}, whose grasp is a handle; leave it out")
+    if args.carry_views:
+        try:
+            check_carries(args.task)
+        except ValueError as exc:
+            raise ValueError(f"--carry-views: {exc}; leave it out") from None
     offsets = measure_offsets(args.offsets_from, args.task)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
                       holdout, carry=args.carry_views, task=args.task)

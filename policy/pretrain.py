@@ -133,8 +133,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     if init_from is not None:
         from policy.bundle_import import is_bundle
 
-        info = Path(init_from) / "dataset.json"
-        if not (is_bundle(init_from) or (info.is_file() and "pretrain" in json.loads(info.read_text()))):
+        if not (is_bundle(init_from) or warm_start.is_pretrain_run(init_from)):
             raise ValueError(f"--init-from {init_from}: neither a `sudd pretrain` run (its dataset.json has no "
                              "'pretrain') nor a policy bundle; go on from one of those, or start afresh")
     split = "train" if cfg.val_fraction > 0 else None
@@ -160,7 +159,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     opt = torch.optim.AdamW(params, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: lr_factor(k, cfg.warmup_steps, steps))
     run_dir = Path(out_run_dir)
-    if any(run_dir.glob("checkpoints/*.pt")) and "pretrain" not in json.loads((run_dir / "dataset.json").read_text()):
+    if any(run_dir.glob("checkpoints/*.pt")) and not warm_start.is_pretrain_run(run_dir):
         raise FileExistsError(f"{run_dir} holds a policy run; pretraining would overwrite it: pick another --out")
     for old in run_dir.glob("checkpoints/*.pt"):  # a pretrain run is written afresh
         old.unlink()

@@ -149,12 +149,12 @@ def validate_model(source, data, samples: int = 1024, val_fraction: float | None
     held to data it did not train on, e.g. a bundle of one family to the episodes of five. A `sudd pretrain`
     run's denoiser never trained: its chunks and denoising loss are left out."""
     import dataclasses
-    import json
     from pathlib import Path
 
     from policy.bundle_import import is_bundle, model_from_bundle
     from policy.normalize import Normalizer
     from policy.train import load_run_model
+    from policy.warm_start import is_pretrain_run
 
     if threads:
         torch.set_num_threads(threads)
@@ -164,8 +164,7 @@ def validate_model(source, data, samples: int = 1024, val_fraction: float | None
     else:
         model, _, _ = load_run_model(source)
         normalizer = Normalizer.load(Path(source) / "stats.npz")
-        info = Path(source) / "dataset.json"
-        pretrained_only = info.is_file() and "pretrain" in json.loads(info.read_text())
+        pretrained_only = is_pretrain_run(source)
     cfg = model.cfg if val_fraction is None else dataclasses.replace(model.cfg, val_fraction=val_fraction)
     if not 0.0 < cfg.val_fraction <= 0.5:
         raise ValueError(f"{source} was trained with val_fraction {cfg.val_fraction}: no episodes of its own are "

@@ -48,6 +48,12 @@ def source_normalizer(source_run: str | Path) -> Normalizer:
     return Normalizer.load(Path(source_run) / "stats.npz")
 
 
+def is_pretrain_run(run_dir: str | Path) -> bool:
+    """Whether a run directory was written by `sudd pretrain` (its dataset.json says "pretrain")."""
+    info = Path(run_dir) / "dataset.json"
+    return info.is_file() and "pretrain" in json.loads(info.read_text())
+
+
 def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
     """Copy the source run's EMA weights into `model` (see the module docstring); returns the record."""
     from policy.bundle_import import is_bundle
@@ -58,8 +64,7 @@ def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
     path = source_checkpoint(source_run)
     state = torch.load(path, map_location="cpu", weights_only=False)
     old = state["ema"]["model"]
-    info = Path(source_run) / "dataset.json"
-    if info.is_file() and "pretrain" in json.loads(info.read_text()):
+    if is_pretrain_run(source_run):
         old = {k: v for k, v in old.items() if k.startswith(tuple(p + "." for p in PRETRAINED))}
     return {"source": str(source_run), "checkpoint": str(path), "step": int(state["step"]),
             "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path)}
