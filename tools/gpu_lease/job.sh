@@ -2,11 +2,13 @@
 # On the lent box: set up, generate EPISODES pick_place episodes on all cores, start one training per
 # NAME='OVERRIDES_JSON' in its own session, all due SECONDS after this script started; then return.
 # usage: bash tools/gpu_lease/job.sh EPISODES SECONDS NAME='{...}' [NAME2='{...}' ...]
+# With EVAL_END (epoch s) set, each run is then exported and evaluated on EVAL_EPISODES pick_place seeds from
+# EVAL_SEED (finish.sh), the cores shared among the runs.
 set -u
 N=$1; LEFT=$2; shift 2
 T0=$(date +%s)
 export PYTHONUNBUFFERED=1 PYTHONPATH=/tmp/site:$PWD MUJOCO_GL=egl
-PY=${PY:-python3}  # a dry run here: PY=.venv/bin/python (no GPU: the set-up below is skipped)
+export PY=${PY:-python3}  # a dry run here: PY=.venv/bin/python (no GPU: the set-up below is skipped)
 if command -v nvidia-smi >/dev/null; then
     $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 3
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
@@ -26,4 +28,8 @@ for spec in "$@"; do
     setsid nohup $PY tools/gpu_lease/train.py /tmp/data "/tmp/runs/$name" $(( T0 + LEFT )) "$ov" \
         > "/tmp/train_$name.log" 2>&1 < /dev/null &
     echo "started $name: $ov"
+    if [ -n "${EVAL_END:-}" ]; then
+        setsid nohup bash tools/gpu_lease/finish.sh "$name" "${EVAL_EPISODES:-60}" "${EVAL_SEED:-100120}" "$EVAL_END" \
+            $(( (W + 1) / $# )) > "/tmp/finish_$name.log" 2>&1 < /dev/null &
+    fi
 done

@@ -1,4 +1,5 @@
-"""Copy a run's newest checkpoint as EMA weights only (fits the 16 MiB a file) and its small files to $OUT."""
+"""Copy a run's newest checkpoint as EMA weights only (if they fit the 16 MiB a file: `full`'s do not) and its
+small files to $OUT."""
 import os
 import sys
 import tarfile
@@ -12,6 +13,10 @@ ck = sorted((run / "checkpoints").glob("step_*.pt"))
 if ck:
     s = torch.load(ck[-1], map_location="cpu", weights_only=False)
     ema = s["ema"]["model"]  # "model" shares its storage: saved once
+    size = sum(v.numel() * v.element_size() for v in ema.values())
+if ck and size > 15 * 2**20:
+    print(f"{run.name}: EMA weights {size / 2**20:.0f} MiB, over the 16 MiB a file: left on the box")
+elif ck:
     torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema, "ema": {"model": ema, "updates": 0},
                 "config": s["config"], "torch": s["torch"]}, dst / f"{run.name}.pt")
     print("pulled", run.name, ck[-1].name)

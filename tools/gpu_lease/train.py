@@ -12,7 +12,7 @@ import torch
 sys.path.insert(0, os.getcwd())
 from policy.train import train  # noqa: E402
 
-CONFIG = "policy/configs/demo_pick_place.toml"
+CONFIG = "policy/configs/demo_pick_place.toml"  # a variant's "config" key names another
 
 
 def main() -> None:
@@ -26,6 +26,7 @@ def main() -> None:
             raise KeyError(f"{len(missing)} texts were not embedded ahead (texts.py), e.g. {missing[:3]}")
         return tab["table"][[row[t] for t in texts]]
 
+    config = extra.pop("config", CONFIG)
     init_from = extra.pop("init_from", None)  # a run directory carried along (.gpu/run_pre3: the pretrained encoders)
     device = "cuda" if torch.cuda.is_available() else "cpu"  # cpu: a dry run of the scripts
     ov = {"batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
@@ -33,7 +34,7 @@ def main() -> None:
           **extra}
     # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
     probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
-    train(data, CONFIG, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
+    train(data, config, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
           init_from=init_from)
     rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     rates = [r["steps_per_s"] for r in rows if "steps_per_s" in r]  # validation rows have none
@@ -41,7 +42,7 @@ def main() -> None:
     load_s = time.time() - t0 - probe / rate
     steps = int(max(probe + 100, rate * (deadline - time.time() - load_s - 30)))
     (out / "plan.json").write_text(json.dumps({"rate": rate, "load_s": load_s, "steps": steps, "overrides": ov}))
-    print(out.name, json.dumps(train(data, CONFIG, out, steps=steps, embedder=embed, overrides=ov, device=device,
+    print(out.name, json.dumps(train(data, config, out, steps=steps, embedder=embed, overrides=ov, device=device,
                                      progress=True)), flush=True)
     (out / "DONE").write_text("ok")
 
