@@ -126,7 +126,7 @@ def _from_bundle(source: str | Path, opset: int) -> tuple[dict[str, Path], dict]
         raise BundleError(f"--text-encoder-from {src}: its graphs are opset {m.get('opset')}, this export's {opset}")
     sources = {rel: src / rel for rel in te["files"]}
     for rel, path in sources.items():
-        if not path.is_file() or sha256_file(path) != listed[rel]["sha256"]:
+        if not path.is_file() or sha256_file(path) != listed.get(rel, {}).get("sha256"):
             raise BundleError(f"--text-encoder-from {src}: {rel} is missing or differs from its manifest; run "
                               f"`sudd export --restore-text-encoder {src}` where the package is installed")
     info = {k: v for k, v in te.items() if k not in ("restorable", "source", "restore", "reference")}
