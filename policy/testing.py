@@ -1,4 +1,5 @@
-"""Small fixtures for tests and smoke runs: a synthetic episode dataset, a tiny config, a hash embedder.
+"""Small fixtures for tests and smoke runs: a synthetic episode dataset, a tiny config, a hash embedder, a tiny
+run, a cheap copy of a bundle to break.
 
 Kept in the package (like datagen.workers.synthetic_episode) so tests, benchmarks and a quick manual
 `sudd train` on fake data all build the same things.
@@ -6,6 +7,7 @@ Kept in the package (like datagen.workers.synthetic_episode) so tests, benchmark
 
 from __future__ import annotations
 
+import shutil
 import zlib
 from pathlib import Path
 
@@ -57,3 +59,26 @@ def hash_embedder(texts: list[str]) -> np.ndarray:
     out = np.stack([np.random.default_rng(zlib.crc32(t.encode())).normal(size=384) for t in texts]) if texts \
         else np.zeros((0, 384))
     return (out / np.linalg.norm(out, axis=-1, keepdims=True).clip(1e-12)).astype(np.float32)
+
+
+def tiny_run(root: str | Path) -> Path:
+    """A TINY run of 6 steps on 6 smooth synthetic episodes of two families (ROOT/data, ROOT/run): something
+    to export and load in a few seconds."""
+    from policy.train import train
+
+    root = Path(root)
+    data = synthetic_dataset(root / "data", episodes=6, tasks=("pick_place", "stack"), smooth=True)
+    train(data, dict(TINY), root / "run", steps=6, embedder=hash_embedder, progress=False, threads=1)
+    return root / "run"
+
+
+def linked_copy(bundle_dir: str | Path, dst: str | Path) -> Path:
+    """A bundle's copy whose large files are symlinks (fast); manifest and stats are real files to edit."""
+    dst = Path(dst)
+    dst.mkdir()
+    for p in Path(bundle_dir).iterdir():
+        if p.name in ("manifest.json", "stats.npz"):
+            shutil.copyfile(p, dst / p.name)
+        else:
+            (dst / p.name).symlink_to(p)
+    return dst

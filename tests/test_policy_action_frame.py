@@ -5,6 +5,7 @@ import pytest
 
 from datagen.schema import rot6d, rot6d_to_matrix
 from policy.action_frame import from_tcp, relative_windows, to_tcp, window_indices
+from runtime.bench_runtime import test_cache_dir as cache_dir
 
 
 def _rz(deg: float) -> np.ndarray:
@@ -119,9 +120,7 @@ def test_rot6d_helpers_agree_with_the_schema():
 
 def test_a_tcp_frame_bundle_hands_the_runtime_absolute_targets(tmp_path, data_dir):
     import json
-    import os
-    import tempfile
-
+        
     from policy.bundle import Bundle
     from policy.export import export
     from policy.testing import TINY, hash_embedder
@@ -130,7 +129,7 @@ def test_a_tcp_frame_bundle_hands_the_runtime_absolute_targets(tmp_path, data_di
     overrides = {"action_frame": "tcp", "aux_target_weight": 1.0, "aux_target_frame": "tcp"}
     train(data_dir, dict(TINY), tmp_path / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
           overrides=overrides)
-    cache = os.path.join(tempfile.gettempdir(), f"sudd-test-cache-{os.getuid()}")
+    cache = cache_dir()
     export(tmp_path / "run", tmp_path / "bundle", cache_dir=cache)  # its parity check composes both sides
     m = json.loads((tmp_path / "bundle" / "manifest.json").read_text())
     assert m["action_layout"]["frame"] == "tcp" and m["parity"]["chunk_max_abs_err"] <= 1e-4

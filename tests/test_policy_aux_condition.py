@@ -1,8 +1,6 @@
 """aux_condition (the aux head's points fed to the denoiser) and warm-starting a run from another."""
 
 import json
-import os
-import tempfile
 
 import numpy as np
 import pytest
@@ -12,6 +10,7 @@ from policy.config import AUX_DIM, load_policy_config
 from policy.model import DiffusionPolicy
 from policy.testing import TINY, hash_embedder, synthetic_dataset
 from policy.train import train
+from runtime.bench_runtime import test_cache_dir as cache_dir
 from sim.config import ConfigError
 
 AUX = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp"}
@@ -145,7 +144,7 @@ def test_an_aux_conditioned_bundle_exports_with_parity(data_dir, source_run, tmp
     run = tmp_path / "run"
     train(data_dir, dict(TINY), run, steps=2, embedder=hash_embedder, progress=False, threads=1,
           overrides={**AUX, "aux_condition": True, "aux_release_frame": release_frame}, init_from=source_run)
-    cache = os.path.join(tempfile.gettempdir(), f"sudd-test-cache-{os.getuid()}")
+    cache = cache_dir()
     m = export(run, tmp_path / "bundle", cache_dir=cache)
     # as export's own check: every step within 1e-4; the absolute chunk, which unnormalizes the steps' small
     # differences by the synthetic data's narrow action ranges, within 1e-3 (0.1 mm measured with a base-frame release)

@@ -1,12 +1,10 @@
 """`sudd bench policy --quick`: a fresh `small` export, measured; every figure is present and sane."""
 
-import os
-import tempfile
-from pathlib import Path
 
 from policy.bench import format_table, run_policy_bench
+from runtime.bench_runtime import test_cache_dir as cache_dir
 
-CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"  # shared with test_policy_export
+CACHE = cache_dir()
 
 
 def test_bench_quick_returns_its_keys(monkeypatch):

@@ -1,9 +1,7 @@
 """A torch policy rebuilt from a bundle's ONNX graphs (policy.bundle_import), and a run warm-started from one."""
 
 import json
-import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -14,9 +12,10 @@ from policy.export import export
 from policy.fp16 import round_weights_
 from policy.testing import TINY, hash_embedder, synthetic_dataset
 from policy.train import load_run_model, train
+from runtime.bench_runtime import test_cache_dir as cache_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"
+CACHE = cache_dir()
 # the shipped bundle's kind of model: aux head fed to the denoiser, release point in the base frame (the
 # proprio normalization inside the graph), flow matching, gripper-frame actions
 SHIPPED_LIKE = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "aux_condition": True,

@@ -2,10 +2,7 @@
 the exported bundle (parity), few-step sampling, and the loader's checks of an Euler schedule."""
 
 import json
-import os
 import shutil
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,8 +16,9 @@ from policy.parity import CHUNK_TOL, STEP_TOL
 from policy.schedule import flow_schedule, flow_step
 from policy.testing import TINY, hash_embedder, synthetic_dataset
 from policy.train import train
+from runtime.bench_runtime import test_cache_dir as cache_dir
 
-CACHE = Path(tempfile.gettempdir()) / f"sudd-test-cache-{os.getuid()}"
+CACHE = cache_dir()
 
 
 @pytest.mark.parametrize("steps", [1, 2, 3, 8])

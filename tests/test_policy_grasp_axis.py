@@ -1,8 +1,6 @@
 """The grasp-axis aux target (policy.grasp_axis, `aux_grasp_axis`): labels on recorded episodes and on rendered
 views, the head and the denoiser's conditioning two wider, exported with parity."""
 
-import os
-import tempfile
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,6 +13,7 @@ from policy.config import load_policy_config
 from policy.grasp_axis import angle_error_deg, axis_label, episode_target_has_axis, has_axis
 from policy.normalize import Normalizer
 from policy.testing import TINY, hash_embedder, smooth_episode
+from runtime.bench_runtime import test_cache_dir as cache_dir
 from sim.config import ConfigError
 
 AXIS = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "aux_grasp_axis": True}
@@ -140,7 +139,7 @@ def test_views_keep_the_grasp_yaw_and_pretraining_labels_the_axis(axis_data, tmp
           overrides={**AXIS, "aux_condition": True, "freeze_pretrained": True}, init_from=tmp_path / "pre")
     model, _, _ = load_run_model(run)
     torch.testing.assert_close(model.aux_head[2].weight, head)
-    cache = os.path.join(tempfile.gettempdir(), f"sudd-test-cache-{os.getuid()}")
+    cache = cache_dir()
     from policy.export import export
 
     m = export(run, tmp_path / "bundle", cache_dir=cache)

@@ -8,17 +8,15 @@ set -u
 trap 'echo "finish.sh ended"' EXIT  # wait.sh's sign that this run has nothing more to come
 NAME=$1; N=$2; S=$3; END=$4; W=$5
 RUN=/tmp/runs/$NAME; B=/tmp/bundles/$NAME
-PY=${PY:-python3}
-sudd() { $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" "$@"; }
+SUDD=("${PY:-python3}" -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))")
 while [ ! -e "$RUN/DONE" ] && [ "$(date +%s)" -lt "$END" ]; do
     grep -q Traceback "/tmp/train_$NAME.log" 2>/dev/null && { echo "$NAME: training failed"; exit 1; }
     sleep 5
 done
 [ -e "$RUN/DONE" ] || { echo "$NAME: not done by the eval deadline"; exit 1; }
-OMP_NUM_THREADS=4 sudd export "$RUN" --out "$B" --text-encoder-from policy/bundles/demo || exit 2
+OMP_NUM_THREADS=4 "${SUDD[@]}" export "$RUN" --out "$B" --text-encoder-from policy/bundles/demo || exit 2
 echo "$NAME exported at $(date +%s)"
-OMP_NUM_THREADS=1 timeout -s INT $(( END - $(date +%s) )) $PY -c \
-    "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" eval --policy "$B" --task pick_place \
+OMP_NUM_THREADS=1 timeout -s INT $(( END - $(date +%s) )) "${SUDD[@]}" eval --policy "$B" --task pick_place \
     --episodes "$N" --seed-offset "$S" --no-collector --workers "$W" --latency-ms 6 --out "/tmp/eval/$NAME" \
     2>&1 | tr '\r' '\n' | grep -v '^$' | tail -5
 echo "$NAME: $(wc -l < "/tmp/eval/$NAME/results.jsonl") episodes evaluated"

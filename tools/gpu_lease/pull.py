@@ -14,12 +14,13 @@ if ck:
     s = torch.load(ck[-1], map_location="cpu", weights_only=False)
     ema = s["ema"]["model"]  # "model" shares its storage: saved once
     size = sum(v.numel() * v.element_size() for v in ema.values())
-if ck and size > 15 * 2**20:
-    print(f"{run.name}: EMA weights {size / 2**20:.0f} MiB, over the 16 MiB a file: left on the box")
-elif ck:
-    torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema, "ema": {"model": ema, "updates": 0},
-                "config": s["config"], "torch": s["torch"]}, dst / f"{run.name}.pt")
-    print("pulled", run.name, ck[-1].name)
+    if size > 15 * 2**20:
+        print(f"{run.name}: EMA weights {size / 2**20:.0f} MiB, over the 16 MiB a file: left on the box")
+    else:
+        torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema,
+                    "ema": {"model": ema, "updates": 0}, "config": s["config"], "torch": s["torch"]},
+                   dst / f"{run.name}.pt")
+        print("pulled", run.name, ck[-1].name)
 with tarfile.open(dst / f"{run.name}.tar", "w") as tar:
     for f in ("config.json", "stats.npz", "dataset.json", "warm_start.json", "metrics.jsonl", "plan.json",
               "summary.json", "DONE"):
