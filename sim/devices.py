@@ -74,6 +74,9 @@ class ArmState:
     robot_mode: RobotMode = RobotMode.RUNNING
     safety_mode: SafetyMode = SafetyMode.NORMAL
     speed_scaling: float = 1.0  # the controller's speed slider x safety scaling, 0..1
+    # getActualTCPForce: [Fx, Fy, Fz, Tx, Ty, Tz] (N, N m), base frame, the external load on the tool (the
+    # payload's own weight compensated); None where the source cannot report it (an old recording)
+    tcp_force: np.ndarray | None = None
 
     @property
     def is_protective_stopped(self) -> bool:

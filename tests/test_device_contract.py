@@ -178,10 +178,11 @@ def test_arm_implements_protocol_and_reports_state(bench):
     assert isinstance(arm, ArmDriver)
     assert 0 < arm.control_period <= 0.008
     s1 = arm.state()
-    for name in ("q", "qd", "tcp_pose", "target_q"):
+    for name in ("q", "qd", "tcp_pose", "target_q", "tcp_force"):
         v = getattr(s1, name)
         assert v.shape == (6,) and v.dtype == np.float64 and np.all(np.isfinite(v)), name
     assert np.linalg.norm(s1.tcp_pose[3:]) <= np.pi + 1e-9  # a rotation vector, angle in [0, pi]
+    assert np.linalg.norm(s1.tcp_force[:3]) < 5.0  # the safe pose touches nothing: only sensor noise
     assert s1.robot_mode == RobotMode.RUNNING and s1.safety_mode == SafetyMode.NORMAL
     assert not s1.is_protective_stopped and 0.0 <= s1.speed_scaling <= 1.0
     stamps = [s1.timestamp_ns]

@@ -124,7 +124,7 @@ class ControllerCore:
         pstop = s.is_protective_stopped
         values.update(
             timestamp=(self.rig.sample_ns - self.t0) * 1e-9, actual_q=tuple(s.q), actual_qd=tuple(s.qd),
-            actual_TCP_pose=tuple(s.tcp_pose), target_TCP_pose=tuple(s.tcp_pose), target_q=tuple(s.target_q),
+            actual_TCP_pose=tuple(s.tcp_pose), actual_TCP_force=tuple(s.tcp_force), target_TCP_pose=tuple(s.tcp_pose), target_q=tuple(s.target_q),
             robot_mode=int(s.robot_mode), safety_mode=int(s.safety_mode), safety_status=int(s.safety_mode),
             safety_status_bits=(1 << 2 | 1 << 10) if pstop else 1, joint_mode=(253,) * 6,
             runtime_state=RUNTIME_PLAYING if playing else RUNTIME_STOPPED, robot_status_bits=1 | (2 if playing else 0),

@@ -19,6 +19,11 @@ Why these defaults:
   `data.gripper_levels`; open and closed when it records none). A collector that opens the fingers half-way
   to reach between a drawer handle and the drawer front records 0.5; a binary channel could never execute it,
   and the policy, seeing fingers its data never had, wandered off (policy/EXPERIMENTS.md, "Gripper levels").
+* `contact_yield_n` 0 (off): a steady press into the cabinet settles at 22 N with it (40 N) against 243 N
+  without (tests/test_controller_contact.py), but the drawer episodes' protective stops are impacts, not
+  presses: the fingers reach 150-770 N within a physics step of touching the front, before any measured force
+  can act. With it, famfz_w2 completed 8/20 drawer_open and 8/20 drawer_close on seeds 100000-100019, against
+  10/20 and 10/20 without (the same 6 ms latency; policy/EXPERIMENTS.md, "Contact yield").
 * `reopen_empty_grasp` on, `reopen_hold` 2 s: on 120 held-out heavy-DR seeds the shipped policy completed
   78 pick-and-places with it against 64 without (14 gained, none lost); 2 s is about one approach.
 """
@@ -68,6 +73,16 @@ class ControllerConfig:
         "after an empty close, the policy's close is ignored until its channel reads open or this long")))
     gripper_speed: float = field(default=0.08, metadata=spec(0.0, 0.15, "m/s"))
     gripper_force: float = field(default=40.0, metadata=spec(0.0, 235.0, "N"))
+    contact_yield_n: float = field(default=0.0, metadata=spec(0.0, 140.0, "N", doc=(
+        "measured tool force above which the commanded position gives way along it (contact_yield.py), "
+        "e.g. 40; 0 (the default) turns it off. Below the robot's own force limit (150 N) so it acts first")))
+    contact_yield_gain: float = field(default=0.002, metadata=spec(0.0, 0.1, "m/(N s)",
+                                      doc="retreat speed per newton over contact_yield_n"))
+    contact_yield_speed: float = field(default=0.1, metadata=spec(0.0, 0.5, "m/s", doc="the most retreat speed"))
+    contact_return_speed: float = field(default=0.02, metadata=spec(0.0, 0.5, "m/s", doc=(
+        "how fast the offset goes back to the plan once the force is below half of contact_yield_n")))
+    contact_max_offset: float = field(default=0.04, metadata=spec(0.0, 0.2, "m", doc=(
+        "the most the position gives way; a plan further into the contact meets the robot's force limit")))
     stop_timeout: float = field(default=2.0, metadata=spec(0.05, 30.0, "s", doc="stop(): give up after"))
     servo_stop_decel: float = field(default=10.0, metadata=spec(0.1, 40.0, "rad/s^2"))
     rest_speed: float = field(default=2e-3, metadata=spec(0.0, 0.1, "rad/s", doc="at rest below this"))

@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numpy as np
 
 from runtime.controller.config import ControllerConfig
+from runtime.controller.contact_yield import ContactYield
 from runtime.controller.gripper import GripperChannel
 from runtime.controller.ik_follow import ChunkConverter, ChunkRejected
 from runtime.controller.latency import LatencyEstimator
@@ -67,6 +68,7 @@ class ControllerLoop(LoopRunner):
         self.timeline = Timeline(cfg, lim.joints)
         self.converter = ChunkConverter(lim.variant, cfg, lim.joints.velocity)
         self.grip = GripperChannel(gripper, lim, cfg)
+        self.contact = ContactYield(cfg, self.converter.kin, self.period)
         self.recovery = RecoveryDriver(safety, arm, hooks, self._emit)
         self.telemetry = Telemetry(cfg.telemetry_size, self.period, cfg.late_tolerance)
         self.latency = LatencyEstimator(self.period, cfg.latency_window)
@@ -200,6 +202,13 @@ class ControllerLoop(LoopRunner):
             desired = np.array(sample[0])
             self._last = (t_eval, desired, np.array(sample[1]), np.array(sample[2]))
             ct = now if self._stopping else min(now, self.timeline.end_time - L)
+        if stops.allows_motion and not halted:
+            desired, change = self.contact.apply(desired, s.tcp_force)
+            if change == "start":
+                self._emit("contact_yield", now, f"tool force {np.linalg.norm(s.tcp_force[:3]):.0f} N > "
+                                                 f"{cfg.contact_yield_n:.0f} N: the target gives way", "info")
+            elif change == "end":
+                self._emit("contact_released", now, "the target is back on the plan", "info")
         ct = max(ct, self._cmd_time)  # never out of order
         self._cmd_time = ct
         try:
@@ -255,6 +264,7 @@ class ControllerLoop(LoopRunner):
         if self.timeline.active or self._pending is not None:
             self._emit("plan_dropped", self._now or 0.0, "stop: the planned chunks were discarded", "info")
         self.timeline.clear()
+        self.contact.reset()
         self._pending, self._hold_q, self._last = None, None, None
 
     def _emit(self, kind: str, now: float, message: str, severity: str = "warning") -> None:

@@ -44,8 +44,8 @@ JOINT_LOWER = np.array([-2 * math.pi, -2 * math.pi, -math.pi, -2 * math.pi, -2 *
 JOINT_UPPER = -JOINT_LOWER
 JOINT_SPEED_MAX = 3.14  # rad/s, ur_rtde's UR_JOINT_VELOCITY_MAX
 JOINT_ACCEL_MAX = 40.0  # rad/s^2, ur_rtde's UR_JOINT_ACCELERATION_MAX
-RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "target_q", "robot_mode",
-                     "safety_mode", "speed_scaling", "target_speed_fraction", "runtime_state"]
+RECEIVE_VARIABLES = ["timestamp", "actual_q", "actual_qd", "actual_TCP_pose", "actual_TCP_force", "target_q",
+                     "robot_mode", "safety_mode", "speed_scaling", "target_speed_fraction", "runtime_state"]
 # Safety modes past sim.devices.SafetyMode (10 validate joint id, 11 undefined, 12/13 safeguard-type stops).
 _EXTRA_SAFETY = {10: SafetyMode.FAULT, 11: SafetyMode.FAULT, 12: SafetyMode.SAFEGUARD_STOP,
                  13: SafetyMode.SAFEGUARD_STOP}
@@ -282,12 +282,14 @@ class URRtdeArm:
             r = self._r
             q, qd = np.array(r.getActualQ(), float), np.array(r.getActualQd(), float)
             pose, target = np.array(r.getActualTCPPose(), float), np.array(r.getTargetQ(), float)
+            wrench = np.array(r.getActualTCPForce(), float)
             robot_mode, safety = r.getRobotMode(), self._safety()
             scaling = min(1.0, max(0.0, r.getSpeedScaling() * r.getTargetSpeedFraction()))
             stamp = self._clock(ts, _time.monotonic_ns())
             self._kick()
         return ArmState(q=q, qd=qd, tcp_pose=pose, target_q=target, timestamp_ns=stamp,
-                        robot_mode=RobotMode(robot_mode), safety_mode=safety, speed_scaling=scaling)
+                        robot_mode=RobotMode(robot_mode), safety_mode=safety, speed_scaling=scaling,
+                        tcp_force=wrench)
 
     # -- internals -------------------------------------------------------------------------------------------
     def _safety(self) -> SafetyMode:

@@ -49,6 +49,7 @@ class ArmNoiseConfig:
 
     q_std: float = field(default=0.0, metadata=spec(0.0, 0.01, "rad"))
     qd_std: float = field(default=0.0, metadata=spec(0.0, 0.1, "rad/s"))
+    force_std: float = field(default=0.0, metadata=spec(0.0, 20.0, "N", doc="on tcp_force (torque: x 0.1 m)"))
     seed: int = 0
 
 
@@ -170,6 +171,9 @@ class SimArm:
             now = self._rig.sample_ns
             stopped = self._rig.protective_stopped
             target = self._ref.copy()
+            wrench = self._rig.tool_wrench()
+            if self.noise.force_std > 0:
+                wrench = wrench + self._rng.normal(0.0, self.noise.force_std, 6) * np.repeat([1.0, 0.1], 3)
             if self.noise.q_std > 0:
                 q = q + self._rng.normal(0.0, self.noise.q_std, 6)
             if self.noise.qd_std > 0:
@@ -177,7 +181,7 @@ class SimArm:
         pose = np.concatenate([T[:3, 3], matrix_to_rotvec(T[:3, :3])])
         return ArmState(q=q, qd=qd, tcp_pose=pose, target_q=target, timestamp_ns=now, robot_mode=RobotMode.RUNNING,
                         safety_mode=SafetyMode.PROTECTIVE_STOP if stopped else SafetyMode.NORMAL,
-                        speed_scaling=0.0 if stopped else 1.0)
+                        speed_scaling=0.0 if stopped else 1.0, tcp_force=wrench)
 
     # -- controller internals (called by the rig with its lock held) ---------------------------------------
     def _check_open(self) -> None:

@@ -40,6 +40,7 @@ from sim.robot import ARM_BODIES, GRIPPER_PAD_GEOMS, GRIPPER_PREFIX
 from sim.twins.arm import ArmNoiseConfig, SimArm
 from sim.twins.camera import CameraNoiseConfig, SimCamera
 from sim.twins.gripper import SimGripper
+from sim.twins.wrench import tool_wrench
 
 MODES = ("lockstep", "realtime")
 
@@ -234,6 +235,12 @@ class SimRig:
             self._stop_ns, self.stop_reason = None, None
             self.arm._freeze()  # resume from where the arm is, with no stale motion
             return True
+
+    def tool_wrench(self) -> np.ndarray:
+        """The external wrench on the gripper, as the flange's force/torque sensor reports it (sim/twins/wrench.py)."""
+        with self.lock:
+            w = self.world
+            return tool_wrench(w.model, w.data, self.geom_gripper, self.geom_robot, w.tcp_pose()[:3, 3])
 
     def _classify_geoms(self) -> None:
         m = self.world.model

@@ -1,0 +1,115 @@
+"""Contact yield (runtime/controller/contact_yield.py): the target gives way along the measured tool force.
+
+In closed loop with the UR5e twin: a scripted plan drives the fingertips 3 cm into the top of the drawer
+task's cabinet (welded to the world, as stiff as a real one). Without the yield the position-controlled arm
+presses with hundreds of newtons; with it the press settles near the yield force, and the offset goes back
+to the plan once the plan leaves the contact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from runtime.controller import ControllerConfig, ControllerLoop
+from runtime.controller.contact_yield import ContactYield
+from safety import SafetyFilter, default_limits
+from sim.build import build_world
+from sim.kinematics import Kinematics
+from sim.robot import TCP_OFFSET_Z
+from sim.rotations import rotvec_to_matrix
+from runtime.messages import ActionChunk
+from sim.twins.rig import SimRig
+
+ABOVE = np.array([-0.2, 0.65, 0.25])  # over the cabinet's top (z = 0.15 there)
+PRESS_Z = 0.12  # the plan's TCP height: the fingertips 3 cm into the top
+
+
+def chunk(t_first_ns, path, R):
+    """16 EE actions 0.1 s apart from t_first_ns on `path(t)`, fingers open, as the policy node sends them."""
+    times = (t_first_ns + 100_000_000 * np.arange(16)).astype(np.int64)
+    acts = [np.concatenate([path(t * 1e-9), R[:, 0], R[:, 1], [0.0]]) for t in times]
+    return ActionChunk(actions=np.array(acts), times_ns=times, obs_time_ns=int(times[0]))
+
+
+def press(yield_n: float, retract: bool = False):
+    """Run the press: per-cycle tool force (N) and upward offset of the target (m), and the loop."""
+    rig = SimRig(build_world("drawer_open", seed=2, dr="off", fidelity="fast"), "lockstep")
+    loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(default_limits("ur5e")),
+                          ControllerConfig(contact_yield_n=yield_n))
+    s = rig.arm.state()
+    p0, R = s.tcp_pose[:3].copy(), rotvec_to_matrix(s.tcp_pose[3:])
+    t0 = rig.now_ns() * 1e-9
+
+    def path(t):
+        u = t - t0
+        if u < 1.5:
+            return p0 + (ABOVE - p0) * (u / 1.5)
+        p = ABOVE.copy()
+        p[2] = max(PRESS_Z, ABOVE[2] - 0.05 * (u - 1.5))
+        if retract and u > 6.0:
+            p[2] = min(ABOVE[2], PRESS_Z + 0.05 * (u - 6.0))
+        return p
+
+    force, give = [], []
+    for k in range(round((9.0 if retract else 6.0) / rig.control_period)):
+        if k % 200 == 0:
+            assert loop.submit(chunk(rig.now_ns(), path, R))
+        loop.cycle()
+        rig.step(1)
+        s = rig.arm.state()
+        assert not s.is_protective_stopped, rig.stop_reason
+        force.append(np.linalg.norm(s.tcp_force[:3]))
+        give.append(loop.contact.offset[2])
+    return np.array(force), np.array(give), loop
+
+
+def test_a_press_into_the_cabinet_settles_near_the_yield_force_and_returns_to_the_plan():
+    stiff, _, _ = press(0.0)
+    soft, give, loop = press(40.0, retract=True)
+    held = slice(round(5.0 / 0.002), round(6.0 / 0.002))  # pressing, settled
+    print(f"\nmean tool force over a second of the press: stiff {stiff[-500:].mean():.0f} N, "
+          f"yielding {soft[held].mean():.0f} N with the target {give[held].mean() * 100:.1f} cm above the plan")
+    assert stiff[-500:].mean() > 150.0  # the arm's force limit would end a real task here
+    assert soft[held].mean() < 45.0 and give[held].min() > 0.01
+    kinds = [e.kind for e in loop.drain_events()]
+    assert "contact_yield" in kinds and "contact_released" in kinds  # ... and gone back to the plan on retract
+    assert not loop.contact.offset.any() and soft[-100:].max() < 5.0
+
+
+@pytest.fixture(scope="module")
+def kin():
+    return Kinematics.with_tcp_z("ur5e", TCP_OFFSET_Z)
+
+
+def test_free_space_leaves_the_target_untouched_and_a_push_moves_the_tcp_along_it(kin):
+    cfg = ControllerConfig(contact_yield_n=40.0)
+    y = ContactYield(cfg, kin, 0.002)
+    q = np.array([0.3, -1.6, 1.7, -1.7, -1.57, 0.2])
+    out, change = y.apply(q, np.array([3.0, -2.0, 5.0, 0.1, 0.0, 0.0]))  # sensor noise, no contact
+    assert out is q and change is None
+    assert y.apply(q, None)[0] is q  # a source that reports no force: nothing to yield to
+    push = np.array([0.0, -100.0, 0.0, 0.0, 0.0, 0.0])  # a front pushing the tool towards -y
+    for k in range(50):
+        out, change = y.apply(q, push)
+        if k == 0:
+            assert change == "start"
+    moved = kin.fk(out)[:3, 3] - kin.fk(q)[:3, 3]
+    expect = min(cfg.contact_yield_gain * 60.0, cfg.contact_yield_speed) * 0.002 * 50
+    assert moved[1] == pytest.approx(-expect, rel=0.02) and abs(moved[0]) + abs(moved[2]) < 5e-4  # first order: 2 % of the move
+    rot = kin.fk(out)[:3, :3].T @ kin.fk(q)[:3, :3]
+    assert np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1)) < 1e-3  # only the position gives way
+
+
+def test_the_offset_is_capped_and_returns_at_the_return_speed(kin):
+    cfg = ControllerConfig(contact_yield_n=40.0, contact_max_offset=0.01, contact_return_speed=0.02)
+    y = ContactYield(cfg, kin, 0.002)
+    q = np.array([0.3, -1.6, 1.7, -1.7, -1.57, 0.2])
+    for _ in range(500):  # 1 s at the most retreat speed would be 10 cm
+        y.apply(q, np.array([0.0, 0.0, 300.0, 0, 0, 0]))
+    assert np.linalg.norm(y.offset) == pytest.approx(0.01)
+    for _ in range(125):  # 0.25 s below half the yield force: 5 mm back
+        y.apply(q, np.zeros(6))
+    assert np.linalg.norm(y.offset) == pytest.approx(0.005, abs=1e-6)
+    changes = [y.apply(q, np.zeros(6))[1] for _ in range(200)]
+    assert changes.count("end") == 1 and not y.offset.any()
