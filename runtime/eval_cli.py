@@ -98,10 +98,10 @@ def _eval(args) -> int:
     if "heldout" in suites and not (held["colors"] or held["shapes"]):
         raise ValueError(f"--suite heldout: {args.policy}'s data recorded no held-out colour or shape; give "
                          "--holdout-color/--holdout-shape (what `sudd datagen` kept out)")
-    jobs = []
+    jobs = []  # seed-major: an eval stopped early (Ctrl-C, a deadline) has every task at about as many seeds
     for suite in suites:
-        for task in tasks:
-            for i in range(args.episodes):
+        for i in range(args.episodes):
+            for task in tasks:
                 seed = args.seed_offset + i
                 jobs.append({"suite": suite, "task": task, "seed": seed, "who": "policy"})
                 if not args.no_collector and suite != "paraphrase":

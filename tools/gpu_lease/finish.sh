@@ -16,7 +16,7 @@ done
 [ -e "$RUN/DONE" ] || { echo "$NAME: not done by the eval deadline"; exit 1; }
 OMP_NUM_THREADS=4 "${SUDD[@]}" export "$RUN" --out "$B" --text-encoder-from policy/bundles/demo || exit 2
 echo "$NAME exported at $(date +%s)"
-OMP_NUM_THREADS=1 timeout -s INT $(( END - $(date +%s) )) "${SUDD[@]}" eval --policy "$B" --task pick_place \
+OMP_NUM_THREADS=1 timeout -s INT $(( END - $(date +%s) )) "${SUDD[@]}" eval --policy "$B" $(printf -- "--task %s " ${EVAL_TASKS:-pick_place}) \
     --episodes "$N" --seed-offset "$S" --no-collector --workers "$W" --latency-ms 6 --out "/tmp/eval/$NAME" \
     2>&1 | tr '\r' '\n' | grep -v '^$' | tail -5
 echo "$NAME: $(wc -l < "/tmp/eval/$NAME/results.jsonl") episodes evaluated"

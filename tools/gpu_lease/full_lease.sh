@@ -7,12 +7,6 @@
 # git-ignored text encoder, which export copies; xz keeps the transfer under 64 MiB).
 set -u
 T0=$(date +%s)
-${PY:-python3} - <<'PYEOF' || exit 5
-import lzma, shutil
-with lzma.open(".gpu/text_encoder.onnx.xz") as f, open("policy/bundles/demo/text_encoder.onnx", "wb") as g:
-    shutil.copyfileobj(f, g)
-shutil.copytree(".gpu/tokenizer", "policy/bundles/demo/tokenizer", dirs_exist_ok=True)
-PYEOF
 export EVAL_END=$(( T0 + ${EVAL_AT:-720} )) EVAL_EPISODES=${EVAL_EPISODES:-60} EVAL_SEED=100120
 export DATAGEN_LIMIT_S=${DATAGEN_LIMIT_S:-170}
 bash tools/gpu_lease/job.sh "${EPISODES:-1000}" "${TRAIN_S:-470}" \

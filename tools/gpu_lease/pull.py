@@ -1,5 +1,5 @@
-"""Copy a run's newest checkpoint as EMA weights only (if they fit the 16 MiB a file: `full`'s do not) and its
-small files to $OUT."""
+"""Copy a run's newest checkpoint as EMA weights only (if they fit the 16 MiB a file, in float16 where float32
+does not: `full`'s do not at all) and its small files to $OUT."""
 import os
 import sys
 import tarfile
@@ -14,6 +14,9 @@ if ck:
     s = torch.load(ck[-1], map_location="cpu", weights_only=False)
     ema = s["ema"]["model"]  # "model" shares its storage: saved once
     size = sum(v.numel() * v.element_size() for v in ema.values())
+    if 15 * 2**20 < size <= 30 * 2**20:  # float16 fits: loading it back casts it to the model's float32
+        ema = {k: v.half() if v.is_floating_point() else v for k, v in ema.items()}
+        size //= 2
     if size > 15 * 2**20:
         print(f"{run.name}: EMA weights {size / 2**20:.0f} MiB, over the 16 MiB a file: left on the box")
     else:

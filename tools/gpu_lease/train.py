@@ -1,5 +1,7 @@
 """One training run on the lent box: policy.train.train with the precomputed embeddings and a step count
-fitted to the time left. usage: python train.py DATA RUN_DIR DEADLINE_EPOCH_S OVERRIDES_JSON"""
+fitted to the time left. usage: python train.py DATA RUN_DIR DEADLINE_EPOCH_S OVERRIDES_JSON
+OVERRIDES_JSON may name "config" (a preset, .toml or bundle), "base" (a run's config.json whose values come
+first, under the lease's and the variant's) and "init_from" (a run to warm-start from)."""
 import json
 import os
 import sys
@@ -27,9 +29,11 @@ def main() -> None:
         return tab["table"][[row[t] for t in texts]]
 
     config = extra.pop("config", CONFIG)
+    base = extra.pop("base", None)  # a run's config.json (.gpu/run_famfz_w2): its choices under the lease's
+    base = json.loads(Path(base).read_text()) if base else {}
     init_from = extra.pop("init_from", None)  # a run directory carried along (.gpu/run_pre3: the pretrained encoders)
     device = "cuda" if torch.cuda.is_available() else "cpu"  # cpu: a dry run of the scripts
-    ov = {"batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
+    ov = {**base, "batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
           "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
           **extra}
     # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
