@@ -22,6 +22,11 @@ from sim.kinematics import rotvec_to_matrix
 OPEN_TARGET, CLOSED_TARGET = 0.95, 0.03  # fractions of the joint range the primitives drive to
 GRASP_SECONDS, RELEASE_SECONDS = 0.5, 0.4
 RETREAT = 0.08
+# The last few centimetres to a handle at a careful 5 cm/s, as a person teaching it would: a finger that meets
+# the stiff front 1 cm early (the distilled policy's chunks scatter that much) presses ~1.9 kN per m/s at the
+# touch (sim, tests/test_controller_contact.py's cabinet), so at the full 0.225 m/s of a planned line it trips
+# the arm's 150 N force limit at once; at 5 cm/s it touches with ~90 N.
+HANDLE_APPROACH_SPEED = 0.05  # m/s
 
 
 @dataclass
@@ -121,7 +126,7 @@ def _handle_motion(prims, info: JointInfo, verb: str, after_grasp) -> Motion:
     for g in grasps:
         try:
             transit = planner.joint_move(q0, g.q_pre, rng, gripper=g.opening, clearance=0.005)
-            approach = planner.line(g.q_pre, g.T, gripper=g.opening)
+            approach = planner.line(g.q_pre, g.T, gripper=g.opening, tcp_speed=HANDLE_APPROACH_SPEED)
             qg = approach[-1]
             rest = after_grasp(g, qg)
         except PlanningFailed as err:

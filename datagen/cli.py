@@ -46,10 +46,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "--path-noise-cm: pick one). Re-running an "
                     "interrupted merge continues it; the merged content hash is printed (it equals the hash of "
                     "the sources' union, whatever the sharding).",
-        epilog="example:\n  sudd data merge out/data_a out/data_b --out out/data_ab",
+        epilog="examples:\n  sudd data merge out/data_a out/data_b --out out/data_ab\n"
+               "  sudd data merge out/data_ab --task pick_place --out out/data_c   # then another source into it",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     merge.add_argument("sources", type=Path, nargs="+", metavar="SRC", help="dataset directories to copy from")
     merge.add_argument("--out", type=Path, required=True, help="the merged dataset's directory")
+    merge.add_argument("--task", action="append", default=None, metavar="TASK",
+                       help="copy only this task's episodes (repeatable; default: every task). Merging more into "
+                            "an existing OUT adds to it, so a family can be swapped for a new generation of it")
     merge.set_defaults(func=_merge)
 
 
@@ -93,7 +97,7 @@ def _merge(args) -> int:
 
     sources = [Dataset(src) for src in args.sources]
     with tqdm(total=sum(len(ds) for ds in sources), unit="ep", desc="merge") as bar:
-        merged = merge_datasets(sources, args.out, progress=bar.update)
+        merged = merge_datasets(sources, args.out, progress=bar.update, tasks=args.task)
     print(f"{args.out}: {len(merged)} episodes from {len(args.sources)} dataset(s); content hash "
           f"{merged.content_hash()}")
     return 0

@@ -7,8 +7,9 @@ from pathlib import Path
 from datagen.store import Dataset, StoreError, shard_dir
 
 
-def merge_datasets(sources: list[Dataset], out: str | Path, progress=None) -> Dataset:
-    """Copy every episode of the `sources` datasets into OUT/shards/merged.zarr and return OUT as a Dataset.
+def merge_datasets(sources: list[Dataset], out: str | Path, progress=None, tasks=None) -> Dataset:
+    """Copy every episode of the `sources` datasets (of `tasks` only, if given: a list of task names) into
+    OUT/shards/merged.zarr and return OUT as a Dataset.
 
     A (task, seed) pair recorded with different content in two sources, or in a source and what OUT already
     holds (a merge continued, or more datasets added to it), is refused with a StoreError before anything is
@@ -22,11 +23,13 @@ def merge_datasets(sources: list[Dataset], out: str | Path, progress=None) -> Da
     for where, ds in there + [(str(ds.root), ds) for ds in sources]:
         for i in range(len(ds)):
             m = ds.meta(i)
+            if tasks is not None and m["task"] not in tasks and where != f"--out {out}":
+                continue
             key, h = (m["task"], int(m["seed"])), m["_sha256"]
             if key in owner and owner[key][1] != h:
                 raise StoreError(f"episode {key} differs between {owner[key][0]} and {where}: merge datasets of "
                                  "different seeds, or leave one of them out")
             owner.setdefault(key, (where, h))
     for ds in sources:
-        ds.merge(out, progress=progress)
+        ds.merge(out, progress=progress, tasks=tasks)
     return Dataset(out)

@@ -254,8 +254,10 @@ class MotionPlanner:
         raise last
 
     # -- Cartesian moves -----------------------------------------------------------------------------------------
-    def cartesian(self, q0, pose_fn, length: float, knot: float = 0.005, **kw) -> np.ndarray:
+    def cartesian(self, q0, pose_fn, length: float, knot: float = 0.005, tcp_speed: float | None = None,
+                  **kw) -> np.ndarray:
         """Follow TCP poses pose_fn(u), u in [0, 1], `length` metres of TCP travel, from q0; sampled at dt.
+        `tcp_speed` (m/s) caps this move's TCP speed below the limits' (a careful approach to a contact).
 
         IK at knots every `knot` metres, each seeded with the previous solution (the branch q0 is on); a
         jump between knots means a singularity or branch change and fails the move.
@@ -279,7 +281,8 @@ class MotionPlanner:
         Rrel = np.einsum("nji,njk->nik", P[:-1, :3, :3], P[1:, :3, :3])
         th = float(np.sum(np.arccos(np.clip((np.trace(Rrel, axis1=1, axis2=2) - 1) / 2, -1, 1)))) + 1e-9
         dqdu = np.max(np.abs(np.gradient(K, u, axis=0)), axis=0) * 1.1 + 1e-9
-        vu = min(np.min(lim.velocity / dqdu), lim.tcp_speed / L, lim.tcp_angular_speed / th)
+        vmax = lim.tcp_speed if tcp_speed is None else min(lim.tcp_speed, tcp_speed)
+        vu = min(np.min(lim.velocity / dqdu), vmax / L, lim.tcp_angular_speed / th)
         au = min(np.min(lim.acceleration / dqdu), lim.tcp_acceleration / L)
         ju = np.min(lim.jerk / dqdu)
         curve = _spline(u, K)

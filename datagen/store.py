@@ -377,18 +377,19 @@ class Dataset:
                         for m in ms})
         return hashlib.sha256((f"sudd-dataset/{SCHEMA_VERSION}\n" + "".join(lines)).encode()).hexdigest()
 
-    def merge(self, out_dir: str | Path, shard: str = "merged", progress=None) -> Path:
-        """Copy every episode into one consolidated shard OUT/shards/<shard>.zarr (readable with Dataset).
+    def merge(self, out_dir: str | Path, shard: str = "merged", progress=None, tasks=None) -> Path:
+        """Copy every episode (of `tasks`, if given) into one shard OUT/shards/<shard>.zarr (readable with Dataset).
 
         Duplicated (task, seed) pairs are written once; re-running an interrupted merge continues it.
-        `progress`, if given, is called once per episode of this dataset (copied or already there).
+        `progress`, if given, is called once per episode of this dataset (copied, already there or left out).
         """
         out_dir = Path(out_dir)
         if out_dir.resolve() == self.root.resolve():
             raise StoreError("merge into a new directory, not into the dataset being read")
         with ShardWriter(out_dir, shard) as writer:
             for i in range(len(self)):
-                if self._key(self.meta(i)) not in writer.keys:
+                m = self.meta(i)
+                if (tasks is None or m["task"] in tasks) and self._key(m) not in writer.keys:
                     writer.append(self.episode(i))
                 if progress is not None:
                     progress()

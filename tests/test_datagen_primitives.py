@@ -133,3 +133,20 @@ def test_unknown_joint_and_placing_nothing_fail_clearly(episode):
     with pytest.raises(PrimitiveFailed, match="holds nothing"):
         prims.place("obj0", "bin_left")
     assert mujoco.mj_name2id(prims.world.model, mujoco.mjtObj.mjOBJ_BODY, "obj0") > 0
+
+
+def test_the_last_centimetres_to_a_handle_are_slow():
+    """A policy a centimetre off at the planned line's full speed would hit the cabinet's front with hundreds of
+    newtons (datagen/articulated.py, HANDLE_APPROACH_SPEED): the demonstrations approach a handle slowly."""
+    from datagen.articulated import HANDLE_APPROACH_SPEED
+
+    ep = build_episode("drawer_open", 0, "light", "fast")
+    prims = Primitives(ep.world, np.random.default_rng(0))
+    motion = prims.open("cabinet/slide")
+    speeds = {}
+    for seg in motion.segments:
+        p = np.array([prims.kin.fk(q)[:3, 3] for q in seg.q])
+        v = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.diff(seg.times) if len(p) > 1 else [0.0]
+        speeds[seg.label] = max(speeds.get(seg.label, 0.0), float(np.max(v)))
+    assert 0.5 * HANDLE_APPROACH_SPEED < speeds["approach handle"] <= HANDLE_APPROACH_SPEED * 1.01
+    assert speeds["move to handle"] > 3 * HANDLE_APPROACH_SPEED  # only the approach is slow

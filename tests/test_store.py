@@ -184,6 +184,24 @@ def test_merge_equals_union_and_hash_is_stable(tmp_path):
         ds.merge(src)
 
 
+def test_merge_of_some_tasks_swaps_a_family_for_a_new_generation(tmp_path):
+    from datagen.merge import merge_datasets
+
+    old, new, out = tmp_path / "old", tmp_path / "new", tmp_path / "out"
+    write(old, "w0", [random_episode(t, s, 4) for t in ("pick", "drawer") for s in range(2)])
+    fresh = [random_episode("drawer", s, 5) for s in range(2)]  # same seeds, other content
+    write(new, "w0", fresh)
+    with pytest.raises(StoreError, match="differs"):
+        merge_datasets([Dataset(old), Dataset(new)], tmp_path / "refused")
+    merge_datasets([Dataset(old)], out, tasks=["pick"])
+    assert Dataset(out).completed_keys() == {("pick", 0), ("pick", 1)}
+    merged = merge_datasets([Dataset(new)], out)  # into the existing OUT: no conflict, the old drawers left out
+    assert merged.completed_keys() == {("pick", 0), ("pick", 1), ("drawer", 0), ("drawer", 1)}
+    drawers = [merged.episode(i) for i in range(len(merged)) if merged.meta(i)["task"] == "drawer"]
+    for ep in drawers:
+        assert_same(fresh[ep.meta["seed"]], ep)
+
+
 def test_warns_on_a_key_in_two_shards(tmp_path):
     write(tmp_path, "w0", [random_episode("pick", 0, 3)])
     write(tmp_path, "w1", [random_episode("pick", 0, 3)])
