@@ -8,6 +8,8 @@ to the plan once the plan leaves the contact.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -127,4 +129,7 @@ def test_the_touch_itself_trips_the_force_limit_when_fast_whatever_yields():
     assert not rig.protective_stopped and 30.0 < touch < 120.0
     for yield_n in (0.0, 40.0):
         _, _, _, rig = press(yield_n, speed=0.2)
-        assert rig.protective_stopped and "contact force" in rig.stop_reason
+        assert rig.protective_stopped and "contact force" in rig.stop_reason, yield_n
+        at = float(re.search(r"TCP at ([0-9.]+) cm/s", rig.stop_reason).group(1))
+        print(f"\nyield {yield_n} N, 20 cm/s: {rig.stop_reason}")
+        assert at > 5.0  # the report tells an impact from a press

@@ -306,8 +306,15 @@ class SimRig:
                 normal += abs(f6[0])
             if normal > self.safety.force_limit_n:
                 self.trigger_protective_stop(f"contact force {normal:.0f} N > {self.safety.force_limit_n:.0f} N "
-                                             f"between {_geom_name(m, pair[0])} and {_geom_name(m, pair[1])}")
+                                             f"between {_geom_name(m, pair[0])} and {_geom_name(m, pair[1])}, "
+                                             f"TCP at {self._tcp_speed() * 100:.1f} cm/s")
                 return
+
+    def _tcp_speed(self) -> float:
+        """The TCP's linear speed now (m/s): a stop's report tells an impact from a slow press."""
+        v = np.zeros(6)
+        mujoco.mj_objectVelocity(self.world.model, self.world.data, mujoco.mjtObj.mjOBJ_SITE, self.world.tcp_site, v, 0)
+        return float(np.linalg.norm(v[3:]))
 
 
 def _geom_name(m, g: int) -> str:
