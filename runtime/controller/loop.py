@@ -47,7 +47,7 @@ _ROBOT_HALTED = (SafetyMode.SAFEGUARD_STOP, SafetyMode.VIOLATION, SafetyMode.FAU
 
 class CycleResult(NamedTuple):
     now: float  # s, cycle time (host monotonic / rig clock)
-    desired: np.ndarray | None  # planned joint target before safety (None if the cycle failed)
+    desired: np.ndarray | None  # planned joint target (with any contact yield) before safety; None if it failed
     result: object  # the FilterResult (None if the cycle failed)
     sent: bool  # servo_j accepted the filter's output
     command_time: float  # the command time given to the watchdog (s)
