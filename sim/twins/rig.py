@@ -71,6 +71,7 @@ class SimRig:
         self.sample_ns = self.now_ns()  # rig time of the latest physics state (what state() stamps)
         self.error: BaseException | None = None
         self.stop_reason: str | None = None
+        self.stop_tcp_speed: float | None = None  # m/s at a contact-force stop: an impact or a press
         self._stop_ns: int | None = None
         self._grace: set[tuple[int, int]] = set()
         self._classify_geoms()
@@ -210,17 +211,17 @@ class SimRig:
     def protective_stopped(self) -> bool:
         return self._stop_ns is not None
 
-    def trigger_protective_stop(self, reason: str = "injected fault") -> None:
+    def trigger_protective_stop(self, reason: str = "injected fault", tcp_speed: float | None = None) -> None:
         """Fault injection: stop as if the safety system had tripped."""
         with self.lock:
             if self._stop_ns is None:
-                self._stop_ns, self.stop_reason = self.now_ns(), reason
+                self._stop_ns, self.stop_reason, self.stop_tcp_speed = self.now_ns(), reason, tcp_speed
                 self.arm._freeze()
 
     def reset(self) -> None:
         """Back to the world's initial state with no stop latched, as after a controller power cycle."""
         with self.lock:
-            self._stop_ns, self.stop_reason = None, None
+            self._stop_ns, self.stop_reason, self.stop_tcp_speed = None, None, None
             self.world.reset()
             self.arm._freeze()
             self._grace = self._present_contacts()
@@ -232,7 +233,7 @@ class SimRig:
             if self.now_ns() - self._stop_ns < self.safety.unlock_delay_s * 1e9:
                 return False
             self._grace = self._present_contacts()
-            self._stop_ns, self.stop_reason = None, None
+            self._stop_ns, self.stop_reason, self.stop_tcp_speed = None, None, None
             self.arm._freeze()  # resume from where the arm is, with no stale motion
             return True
 
@@ -305,9 +306,10 @@ class SimRig:
                 mujoco.mj_contactForce(m, d, i, f6)
                 normal += abs(f6[0])
             if normal > self.safety.force_limit_n:
+                speed = self._tcp_speed()
                 self.trigger_protective_stop(f"contact force {normal:.0f} N > {self.safety.force_limit_n:.0f} N "
                                              f"between {_geom_name(m, pair[0])} and {_geom_name(m, pair[1])}, "
-                                             f"TCP at {self._tcp_speed() * 100:.1f} cm/s")
+                                             f"TCP at {speed * 100:.1f} cm/s", tcp_speed=speed)
                 return
 
     def _tcp_speed(self) -> float:
