@@ -18,12 +18,13 @@ def merge_datasets(sources: list[Dataset], out: str | Path, progress=None, tasks
     out = Path(out)
     if any(ds.root.resolve() == out.resolve() for ds in sources):
         raise StoreError(f"--out {out} is one of the sources: merge into a new directory")
-    there = [(f"--out {out}", Dataset(out))] if shard_dir(out).is_dir() else []
+    # what OUT already holds counts whole; the sources only with the tasks that will be copied
+    there = [(f"--out {out}", Dataset(out), None)] if shard_dir(out).is_dir() else []
     owner: dict[tuple, tuple[str, str]] = {}  # (task, seed) -> (where, content hash)
-    for where, ds in there + [(str(ds.root), ds) for ds in sources]:
+    for where, ds, only in there + [(str(ds.root), ds, tasks) for ds in sources]:
         for i in range(len(ds)):
             m = ds.meta(i)
-            if tasks is not None and m["task"] not in tasks and where != f"--out {out}":
+            if only is not None and m["task"] not in only:
                 continue
             key, h = (m["task"], int(m["seed"])), m["_sha256"]
             if key in owner and owner[key][1] != h:

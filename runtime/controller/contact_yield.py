@@ -38,7 +38,6 @@ class ContactYield:
     def __init__(self, cfg, kin, period: float):
         self.cfg, self.kin, self.dt = cfg, kin, float(period)
         self.offset = np.zeros(3)
-        self.peak_force = 0.0  # the largest tool force seen since the last reset (N)
         self.yielding = False
         self._prev_p: np.ndarray | None = None
 
@@ -57,7 +56,6 @@ class ContactYield:
             return desired_q, None
         f = np.asarray(tcp_force, dtype=float)[:3]
         mag = float(math.sqrt(f @ f)) if np.all(np.isfinite(f)) else 0.0
-        self.peak_force = max(self.peak_force, mag)
         cfg = self.cfg
         if mag <= 0.5 * cfg.contact_yield_n and not self.offset.any():
             self._prev_p = None
