@@ -53,6 +53,7 @@ def summarise(records: list[dict]) -> list[dict]:
         ends = Counter(r["end"] for r in rs if not r["success"] and r.get("end"))
         near = sorted(r["closest_cm"] for r in rs if r.get("failure") == "no_grasp" and r.get("closest_cm") is not None)
         hits = [r["stop_speed_cm_s"] for r in rs if r.get("stop_speed_cm_s") is not None]
+        holding = sum(bool(r.get("stop_fingers_closed")) for r in rs if r.get("stop_speed_cm_s") is not None)
         turned = [[abs(c["yaw_off_deg"]) for c in r.get("closes", ()) if c.get("yaw_off_deg") is not None]
                   for r in rs if r.get("failure") == "no_grasp"]
         yaw = sorted(median(t) for t in turned if t)
@@ -63,6 +64,7 @@ def summarise(records: list[dict]) -> list[dict]:
                      "failures": dict(failures), "ends": dict(ends),
                      "no_grasp_closest_cm": near[len(near) // 2] if near else None,
                      "stop_speed_cm_s": median(hits) if hits else None,
+                     "stops_fingers_closed": holding,
                      "no_grasp_close_yaw_off_deg": yaw[len(yaw) // 2] if yaw else None,
                      "release_off_cm": {"success": _last_release_cm(ok), "target_not_placed": _last_release_cm(tnp)},
                      "release_aim_off_cm": {"success": _last_release_cm(ok, "aim_"),
@@ -102,7 +104,7 @@ def failure_table(rows: list[dict]) -> str:
         return ""
     ends = sorted({e for r in pol for e in r.get("ends", {})})
     lines = ["| suite | task | failed | " + " | ".join(FAILURES + tuple(f"ended: {e}" for e in ends))
-             + " | force stops: TCP speed at the stop (median) "
+             + " | force stops: TCP speed at the stop (median); how many with the fingers closed "
              "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
              "| target_not_placed: the object ended "
              "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) |",
@@ -110,7 +112,7 @@ def failure_table(rows: list[dict]) -> str:
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
         near, hit = r.get("no_grasp_closest_cm"), r.get("stop_speed_cm_s")
         cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
-        cells.append("-" if hit is None else f"{hit:.1f} cm/s")
+        cells.append("-" if hit is None else f"{hit:.1f} cm/s; {r.get('stops_fingers_closed', 0)} closed")
         cells.append("-" if near is None else f"{near:.1f} cm")
         yaw = r.get("no_grasp_close_yaw_off_deg")
         cells.append("-" if yaw is None else f"{yaw:.0f} deg")

@@ -53,6 +53,7 @@ class EpisodeOutcome:
     end: str  # success | timeout | protective_stop
     stop_reason: str = ""  # what the sim robot's protective stop saw (contact pair or force)
     stop_speed_cm_s: float | None = None  # the TCP's speed at a contact-force stop (an impact or a press)
+    stop_fingers_closed: bool | None = None  # at a contact-force stop: closed (on a handle, an object or nothing)
     chunks: int = 0
     rejected_chunks: int = 0
     inference_ms: list[float] = field(default_factory=list)
@@ -123,6 +124,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 out.end, out.stop_reason = "protective_stop", str(rig.stop_reason or "")
                 if rig.stop_tcp_speed is not None:
                     out.stop_speed_cm_s = round(100.0 * rig.stop_tcp_speed, 1)
+                    out.stop_fingers_closed = bool(rig.world.gripper_command() >= 0.9)
                 break
             t_obs = rig.now_ns()
             lag_cycles = 0

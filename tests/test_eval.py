@@ -286,7 +286,7 @@ def test_summary_table_and_chart(tmp_path):
     recs += [{"suite": "seen", "task": "pick_place", "who": "collector", "success": s, "sim_seconds": 8.0}
              for s in (True, False, False, False)]
     recs[3].update(failure="wrong_object", end="protective_stop", closest_cm=1.0,  # held: not a no_grasp
-                   stop_speed_cm_s=17.5)
+                   stop_speed_cm_s=17.5, stop_fingers_closed=True)
     recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "target_not_placed", "end": "timeout", "target_end": e, "releases": let_go}
              for e, let_go in (("outside", [{"dx_cm": 30.0, "dy_cm": 0.0},
@@ -305,12 +305,12 @@ def test_summary_table_and_chart(tmp_path):
     assert "| paraphrase | pick_place | 0/3 = 0% [0, 56] | - | - |" in table
     why = failure_table(rows).splitlines()
     assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
-                      "| ended: timeout | force stops: TCP speed at the stop (median) "
+                      "| ended: timeout | force stops: TCP speed at the stop (median); how many with the fingers closed "
                       "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
                       "| target_not_placed: the object ended "
                       "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) |")
     # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm)
-    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | 17.5 cm/s | - | - | held 1, outside 2 "
+    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | 17.5 cm/s; 1 closed | - | - | held 1, outside 2 "
                        "| 15.0 cm (aimed 5.0 cm) |",
                        "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | - | 7.2 cm | 85 deg | - | - |"]
     assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
