@@ -27,9 +27,6 @@ RETREAT = 0.08
 # touch (sim, tests/test_controller_contact.py's cabinet), so at the full 0.225 m/s of a planned line it trips
 # the arm's 150 N force limit at once; at 5 cm/s it touches with ~90 N.
 HANDLE_APPROACH_SPEED = 0.05  # m/s
-# A drawer moved by its handle at a walking 10 cm/s rather than the limits' 25: the rigid grasp meets every
-# centimetre of a policy's error along the constrained directions as force, ~1.9 kN per m/s of it.
-HELD_SLIDE_SPEED = 0.10  # m/s
 
 
 @dataclass
@@ -155,7 +152,7 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
         if info.kind == "slide":
             T_end = g.T.copy()
             T_end[:3, 3] += delta * info.axis
-            move = planner.line(qg, T_end, gripper=hold, allow=(info.body,), tcp_speed=HELD_SLIDE_SPEED)
+            move = planner.line(qg, T_end, gripper=hold, allow=(info.body,))
         else:
             T0 = g.T.copy()
 

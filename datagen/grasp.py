@@ -270,10 +270,6 @@ class GraspSampler:
             R = _best_flip(R, R_now)
             T = np.eye(4)
             T[:3, :3] = R
-            # Anywhere from the fingertips just past the bar's centre to the pads' centre on it: the deeper
-            # grasps hold with more margin for a policy that comes down a centimetre short, and the spread
-            # teaches it that a grasp at any of these depths is followed by no vertical correction (a pull
-            # down on a bar held by a drawer jams the fingers at once: hundreds of newtons).
-            T[:3, 3] = d.geom_xpos[g] + t * axis + R[:, 2] * rng.uniform(0.0, PAD_CENTRE)
+            T[:3, 3] = d.geom_xpos[g] + t * axis + R[:, 2] * rng.uniform(0.0, 0.006)
             cands.append((abs(tilt) + 5.0 * abs(t) + rng.uniform(0.0, 0.1), T, 2.0 * float(size[0])))
         return self._validate(cands, q_now, body, k, openings=openings, touch={g})
