@@ -11,7 +11,7 @@ export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 # Committed policy bundles leave out their text encoder (text_encoder.onnx + tokenizer/, git-ignored: rebuilt
 # from the installed MiniLM package). $(call restore_text,TEST) restores it into every bundle under
-# policy/bundles/ with a manifest for which the shell TEST fails (none committed yet: the loop does nothing).
+# policy/bundles/ with a manifest for which the shell TEST fails.
 restore_text = for m in policy/bundles/*/manifest.json; do \
 	  [ -f "$$m" ] || continue; d="$${m%/manifest.json}"; \
 	  $(1) || $(VENV)/bin/sudd export --restore-text-encoder "$$d" || exit 1; \
@@ -49,15 +49,16 @@ $(VENV)/.installed: pyproject.toml | system-deps
 	@touch $@
 
 # The main job on the embedded default: the whole runtime stack (robot node with the sim twins, policy node
-# with the shipped bundle, real Zenoh sessions) on a held-out pick_place episode under heavy randomization;
-# it prints the task's success and the latency figures. The shipped policy completes 412/480 held-out episodes,
-# seed 100003 among them; success there depends on the sampler's noise (an earlier policy completed it about
-# every other try), so expect a failure now and then. Any seed from 100000 up is held out from
-# training: `make demo DEMO_SEED=100010`. The scripted oracles: `sudd sim demo`.
+# with the shipped five-family bundle, real Zenoh sessions) on a held-out pick_place episode under heavy
+# randomization; it prints the task's success and the latency figures. That policy completes 300 of 320
+# held-out pick_place episodes in evaluation (policy/bundles/multitask/RECIPE.md), seed 100003 among them;
+# success depends on the sampler's noise, so expect a failure now and then. Any seed from 100000 up is held
+# out from training: `make demo DEMO_SEED=100010`; another family: `sudd run --sim --task drawer_open ...`.
+# The scripted oracles: `sudd sim demo`.
 DEMO_SEED ?= 100003
 demo: setup
 	$(VENV)/bin/sudd sim preview --task pick_place --dr heavy --seed $(DEMO_SEED) --out out/demo/dr_grid.png
-	$(VENV)/bin/sudd run --sim --policy policy/bundles/demo --task pick_place --seed $(DEMO_SEED) --dr heavy \
+	$(VENV)/bin/sudd run --sim --policy policy/bundles/multitask --task pick_place --seed $(DEMO_SEED) --dr heavy \
 	  --duration 40
 
 test: setup

@@ -11,7 +11,7 @@
   robot node receives it (`obs_to_receive`) -> ControllerLoop.submit accepted it (`obs_to_accepted`, IK
   included). p50/p99 in ms. Target: obs_to_receive p50 <= 50 ms on this CPU.
 
-Default bundle: the shipped one (policy/bundles/demo) once set-up has restored its text encoder; otherwise
+Default bundle: the shipped default (policy/bundles/multitask) once set-up has restored its text encoder; otherwise
 an untrained `small` policy exported to a temp dir by `make_test_bundle` (in a subprocess: the runtime never
 imports torch), with its action range set around the sim arm's home pose so the chunks are executable
 (small motions near home), and the episode's instruction recorded as trained. The JSON names which ran.

@@ -1,7 +1,7 @@
 """Launch the runtime: node processes with their configs, ready waits, monitoring and the ordered shutdown.
 
     from runtime.launch import Launcher, sim_stack
-    with Launcher(sim_stack(bundle="policy/bundles/demo", task="pick_place", seed=0)) as la:
+    with Launcher(sim_stack(bundle="policy/bundles/multitask", task="pick_place", seed=0)) as la:
         la.wait_ready()
         la.say("put the red block in the left bin")
         la.monitor(duration_s=20)

@@ -10,7 +10,7 @@ import time
 import uuid
 from pathlib import Path
 
-DEFAULT_BUNDLE = Path("policy/bundles/demo")
+DEFAULT_BUNDLE = Path("policy/bundles/multitask")
 BUNDLE_ENV = "SUDD_POLICY"
 NODE_KINDS = ("robot", "camera", "policy")
 
@@ -28,7 +28,7 @@ policy on another computer (a GPU box), controller on the robot's:
   (the robot PC's launcher sends the command until the policy node answers; open port 7447 and the nodes'
    ephemeral ports between the two; the same works with --sim on the robot PC)
 
-policy bundle: --policy, else $SUDD_POLICY, else policy/bundles/demo if it exists. Make one with
+policy bundle: --policy, else $SUDD_POLICY, else policy/bundles/multitask if it exists. Make one with
   sudd train out/data --out out/run  &&  sudd export out/run --out out/bundle
 
 hardware bring-up checklist (before --allow-motion):

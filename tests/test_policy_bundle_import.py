@@ -70,14 +70,23 @@ def test_a_run_warm_started_from_a_bundle_starts_from_its_weights(exported):
         torch.testing.assert_close(after.state_dict()[name], value, msg=name)
 
 
-@pytest.mark.skipif(not (ROOT / "policy/bundles/demo/text_encoder.onnx").is_file(),
-                    reason="the demo bundle's text encoder is restored by `make` (sudd export --restore-text-encoder)")
-def test_the_shipped_bundle_rebuilds_in_torch():
-    model, _, manifest = model_from_bundle(ROOT / "policy/bundles/demo")
+SHIPPED = sorted(p.parent.name for p in (ROOT / "policy/bundles").glob("*/manifest.json"))
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_a_shipped_bundle_rebuilds_in_torch_and_says_how_it_was_made(name):
+    bundle = ROOT / "policy/bundles" / name
+    recipe = (bundle / "RECIPE.md").read_text()
+    assert "sudd train" in recipe and "sudd export" in recipe and "sudd eval" in recipe
+    if not (bundle / "text_encoder.onnx").is_file():
+        pytest.skip("the text encoder is restored by `make` (sudd export --restore-text-encoder)")
+    model, _, manifest = model_from_bundle(bundle)
     imported = manifest["imported"]
     assert imported["not_in_graphs"] == []
     assert imported["parameters"] == manifest["params"]["policy_total"]
     assert imported["parity"]["step_max_abs_err"] <= 1e-4 and imported["parity"]["chunk_max_abs_err"] <= 1e-3
+    for task in manifest["tasks"]:  # every family it was trained on is in its recipe's results
+        assert f"| {task} |" in recipe
 
 
 def test_pretraining_from_a_bundle_starts_from_its_encoders_and_keeps_its_stats(exported, tmp_path):

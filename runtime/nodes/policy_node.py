@@ -1,6 +1,6 @@
 """policy_node: camera frames + robot state + the language command -> ActionChunks at the bundle's rate.
 
-    python -m runtime.nodes.policy_node --config '{"bundle": "policy/bundles/demo"}'
+    python -m runtime.nodes.policy_node --config '{"bundle": "policy/bundles/multitask"}'
 
 Runs in its own process, so inference (tens of ms) never blocks the 500 Hz controller. At most hz (the bundle's
 control_hz, 10 Hz; divided by `replan_every`) times a second, on the monotonic clock:
