@@ -118,7 +118,8 @@ def _handle_motion(prims, info: JointInfo, verb: str, after_grasp) -> Motion:
     world, planner, rng = prims.world, prims.planner, prims.rng
     handle = find_handle(world, info.body)
     q0 = prims.start_q()
-    grasps = prims.grasps.handle_grasps(handle, q0, rng)
+    front = info.kind == "slide" and prims.handle_grasp == "front"
+    grasps = prims.grasps.handle_grasps(handle, q0, rng, front=front)
     if not grasps:
         raise PlanningFailed(f"no valid grasp on the handle {handle!r}")
     dt = world.timestep
@@ -166,9 +167,7 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
             radius = float(np.linalg.norm(np.cross(info.axis, g.T[:3, 3] - info.anchor)))
             move = planner.cartesian(qg, pose, abs(delta) * max(radius, 0.02), gripper=hold, allow=(info.body,))
         qm = move[-1]
-        T_up = prims.kin.fk(qm)
-        T_up[2, 3] += RETREAT
-        retreat = planner.line(qm, T_up, gripper=g.opening, allow=(info.body,))
+        retreat = planner.line(qm, _retreat_pose(prims.kin.fk(qm)), gripper=g.opening, allow=(info.body,))
         return [
             Segment(_timed(move, dt), move, 1.0, verb),
             Segment.hold(qm, RELEASE_SECONDS, g.opening, "release handle"),
@@ -176,6 +175,17 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
         ]
 
     return _handle_motion(prims, info, verb, after_grasp)
+
+
+def _retreat_pose(T: np.ndarray) -> np.ndarray:
+    """Where the open fingers leave a handle to: straight up from a grasp from above, straight back out along
+    the approach from a grasp from the front (up would take the lower finger into the bar)."""
+    T = T.copy()
+    if T[2, 2] < -0.7:
+        T[2, 3] += RETREAT
+    else:
+        T[:3, 3] -= RETREAT * T[:3, 2]
+    return T
 
 
 # -- hinges ------------------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ import numpy as np
 from datagen.dart import joint_offsets
 from datagen.plan import PRIMITIVES, describe
 from datagen.planner import make_planner
-from datagen.primitives import GRASP_SECONDS, PrimitiveFailed, Primitives
+from datagen.primitives import GRASP_SECONDS, HANDLE_GRASPS, PrimitiveFailed, Primitives
 from datagen.recorder import Recorder
 from datagen.sandbox import SandboxError, run_check
 from datagen.schema import IMAGE_SIZE, PERTURBATION, EpisodeData
@@ -61,6 +61,9 @@ class DatagenConfig:
         "each pick's grasp happens at a random horizontal offset of this std per axis from the planned one "
         "(datagen/dart.py), the recorded actions stay the plan's, so the policy learns to close when near, "
         "not only exactly on the plan; 0 leaves episodes exactly as without it")))
+    handle_grasp: str = field(default="top", metadata=spec(choices=HANDLE_GRASPS, doc=(
+        "how a drawer's handle is grasped: from above (the fingers closing across it horizontally) or from the "
+        "front, level (the fingers closing above and below it, the gripper's outer links away from the drawer)")))
     holdout_colors: tuple[str, ...] = field(default=(), metadata=spec(choices=OBJECT_COLORS,
                                             doc="object colours never used (kept for a held-out evaluation)"))
     holdout_shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES,
@@ -112,7 +115,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     scene = describe(ep.instance)
     planner = planner or make_planner(cfg.planner, llm_url=cfg.llm_url or None, llm_model=cfg.llm_model or None)
     plan = planner.plan(ep.instruction, scene).validate(scene)
-    prims = Primitives(world, ep.rngs.policy, variant=world.variant.name)
+    prims = Primitives(world, ep.rngs.policy, variant=world.variant.name, handle_grasp=cfg.handle_grasp)
     recorder = Recorder(ep, image_size=tuple(cfg.image_size))
     state = StateView(world)
     budget = ep.task.max_seconds * cfg.time_limit_factor
@@ -194,6 +197,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
             meta["path_noise_cm"] = cfg.path_noise_cm
         if cfg.grasp_noise_cm > 0:
             meta["grasp_noise_cm"] = cfg.grasp_noise_cm
+        if cfg.handle_grasp != "top":
+            meta["handle_grasp"] = cfg.handle_grasp
         return recorder.finish(meta)
     finally:
         recorder.close()

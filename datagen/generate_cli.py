@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="close each pick's grasp at a random horizontal offset of this std (cm per axis) from the "
                           "planned grasp while the actions stay the plan's, so the policy learns to close when "
                           "near, not only exactly on the plan (0-3; default 0: off)")
+    gen.add_argument("--handle-grasp", default="top", choices=("top", "front"),
+                     help="how a drawer's handle is grasped: from above (default) or from the front, level, the "
+                          "fingers closing above and below the bar")
     gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                      help="never use this object colour (repeatable), so `sudd eval --heldout` can test it")
     gen.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
@@ -75,7 +78,7 @@ def _generate(args) -> int:
     cfg = load_config(DatagenConfig, {
         "dr": args.dr, "fidelity": args.fidelity, "max_retries": args.max_retries, "label": args.label,
         "perturb": args.perturb, "perturb_grasp": args.perturb_grasp,
-        "path_noise_cm": args.path_noise_cm, "grasp_noise_cm": args.grasp_noise_cm,
+        "path_noise_cm": args.path_noise_cm, "grasp_noise_cm": args.grasp_noise_cm, "handle_grasp": args.handle_grasp,
         "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
     summary = generate(tasks, args.episodes, args.out, args.workers, partial(run_episode, cfg=cfg),

@@ -244,8 +244,10 @@ class GraspSampler:
         return self._validate(cands, q_now, body, k)
 
     def handle_grasps(self, geom: str, q_now, rng, k: int = 3, n: int = 40,
-                      openings=(0.5, 0.3, 0.65)) -> list[Grasp]:
-        """Grasps around a bar handle (capsule or box geom): approach across the bar, fingers around it."""
+                      openings=(0.5, 0.3, 0.65), front: bool = False) -> list[Grasp]:
+        """Grasps around a bar handle (capsule or box geom): approach across the bar, fingers around it; from
+        above (the fingers closing horizontally) or with `front` from the robot's side, level, the fingers
+        closing above and below the bar, so the gripper's outer links stay clear of what the bar stands off."""
         m, d = self.world.model, self.world.data
         g = m.geom(geom).id
         R_g = d.geom_xmat[g].reshape(3, 3)
@@ -257,14 +259,17 @@ class GraspSampler:
             axis, half = R_g[:, i], float(size[i])
         body = m.body(m.geom_bodyid[g]).name
         R_now = self.kin.fk(q_now)[:3, :3]
-        down = np.array([0.0, 0.0, -1.0])
+        approach = np.array([0.0, 0.0, -1.0])
+        if front:  # level, across the bar, away from the robot's base (the world origin)
+            approach = np.cross(axis, [0.0, 0.0, 1.0])
+            approach *= np.sign(np.dot(approach[:2], d.geom_xpos[g][:2])) / np.linalg.norm(approach)
         cands = []
         for _ in range(n):
             t = rng.uniform(-0.5, 0.5) * max(half - 0.015, 0.0)
-            z = down - np.dot(down, axis) * axis
+            z = approach - np.dot(approach, axis) * axis
             x = np.cross(axis, z / np.linalg.norm(z))
             tilt = rng.uniform(-0.5, 0.5) * self.max_tilt
-            R = tcp_frame(x, down, tilt)
+            R = tcp_frame(x, approach, tilt)
             if R is None:
                 continue
             R = _best_flip(R, R_now)

@@ -42,10 +42,17 @@ class PrimitiveFailed(RuntimeError):
 def _timed(Q, dt) -> np.ndarray:
     return np.arange(len(Q)) * dt
 
+# How a drawer's (slide joint's) handle is taken: from above, or from the front, level (datagen/grasp.py); lids
+# (hinges) are always taken from above.
+HANDLE_GRASPS = ("top", "front")
+
 
 class Primitives:
-    def __init__(self, world, rng: np.random.Generator, variant: str = "ur5e", budget: float = 2.0):
-        self.world, self.rng, self.budget = world, rng, budget
+    def __init__(self, world, rng: np.random.Generator, variant: str = "ur5e", budget: float = 2.0,
+                 handle_grasp: str = "top"):
+        if handle_grasp not in HANDLE_GRASPS:
+            raise ValueError(f"handle_grasp {handle_grasp!r}: expected one of {HANDLE_GRASPS}")
+        self.world, self.rng, self.budget, self.handle_grasp = world, rng, budget, handle_grasp
         v = get_variant(variant)
         self.kin = Kinematics.with_tcp_z(v, TCP_OFFSET_Z)
         self.checker = CollisionChecker(world, margin=0.01, workspace=safety_workspace(v.name))

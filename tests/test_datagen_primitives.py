@@ -150,3 +150,33 @@ def test_the_last_centimetres_to_a_handle_are_slow():
         speeds[seg.label] = max(speeds.get(seg.label, 0.0), float(np.max(v)))
     assert 0.5 * HANDLE_APPROACH_SPEED < speeds["approach handle"] <= HANDLE_APPROACH_SPEED * 1.01
     assert speeds["move to handle"] > 3 * HANDLE_APPROACH_SPEED  # only the approach is slow
+
+
+def test_a_drawer_handle_taken_from_the_front_is_level_and_opens_the_drawer():
+    """handle_grasp "front": the approach is level and points away from the robot, the fingers close above and
+    below the bar (the closing axis vertical), the part still moves to its target, and the open fingers leave
+    straight back out along the approach (up would take the lower finger into the bar)."""
+    from datagen.articulated import RETREAT
+
+    ep = build_episode("drawer_open", 310000, "light", "fast")
+    prims = Primitives(ep.world, np.random.default_rng(0), handle_grasp="front")
+    motion = prims.open("cabinet/slide")
+    labels = [s.label for s in motion.segments]
+    T = prims.kin.fk(motion.segments[labels.index("grasp handle")].q[0])
+    assert abs(T[2, 2]) < 0.2 and abs(T[2, 0]) > 0.95  # approach level, closing axis vertical
+    assert np.dot(T[:2, 2], T[:2, 3]) > 0  # away from the base
+    retreat = motion.segments[-1]
+    p0, p1 = (prims.kin.fk(retreat.q[i])[:3, 3] for i in (0, -1))
+    T_end = prims.kin.fk(retreat.q[0])
+    np.testing.assert_allclose(p1 - p0, -RETREAT * T_end[:3, 2], atol=0.005)
+    with pytest.raises(ValueError, match="handle_grasp 'side'"):
+        Primitives(ep.world, np.random.default_rng(0), handle_grasp="side")
+
+
+def test_a_datagen_episode_records_a_front_handle_grasp_and_completes_the_drawers():
+    from datagen.episode import DatagenConfig, run_episode
+
+    for task in ("drawer_open", "drawer_close"):
+        ep = run_episode(task, 310001, DatagenConfig(dr="heavy", handle_grasp="front"))
+        assert ep.meta["success"] and ep.meta["handle_grasp"] == "front", ep.meta["attempts"]
+    assert "handle_grasp" not in run_episode("drawer_open", 310001, DatagenConfig(dr="heavy")).meta
