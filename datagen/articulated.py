@@ -167,11 +167,14 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
             radius = float(np.linalg.norm(np.cross(info.axis, g.T[:3, 3] - info.anchor)))
             move = planner.cartesian(qg, pose, abs(delta) * max(radius, 0.02), gripper=hold, allow=(info.body,))
         qm = move[-1]
-        retreat = planner.line(qm, _retreat_pose(prims.kin.fk(qm)), gripper=g.opening, allow=(info.body,))
+        # A front grasp's fingers leave along the bar's sides, above and below it: wide open, so that an arm a
+        # centimetre off its path (a policy's, or DART noise's) does not drag the drawer back out by a fingertip.
+        let_go = g.opening if g.T[2, 2] < -0.7 else 0.0
+        retreat = planner.line(qm, _retreat_pose(prims.kin.fk(qm)), gripper=let_go, allow=(info.body,))
         return [
             Segment(_timed(move, dt), move, 1.0, verb),
-            Segment.hold(qm, RELEASE_SECONDS, g.opening, "release handle"),
-            Segment(_timed(retreat, dt), retreat, g.opening, "retreat"),
+            Segment.hold(qm, RELEASE_SECONDS, let_go, "release handle"),
+            Segment(_timed(retreat, dt), retreat, let_go, "retreat"),
         ]
 
     return _handle_motion(prims, info, verb, after_grasp)

@@ -154,8 +154,8 @@ def test_the_last_centimetres_to_a_handle_are_slow():
 
 def test_a_drawer_handle_taken_from_the_front_is_level_and_opens_the_drawer():
     """handle_grasp "front": the approach is level and points away from the robot, the fingers close above and
-    below the bar (the closing axis vertical), the part still moves to its target, and the open fingers leave
-    straight back out along the approach (up would take the lower finger into the bar)."""
+    below the bar (the closing axis vertical), the part still moves to its target, and the fingers, wide open,
+    leave straight back out along the approach (up would take the lower finger into the bar)."""
     from datagen.articulated import RETREAT
 
     ep = build_episode("drawer_open", 310000, "light", "fast")
@@ -166,6 +166,7 @@ def test_a_drawer_handle_taken_from_the_front_is_level_and_opens_the_drawer():
     assert abs(T[2, 2]) < 0.2 and abs(T[2, 0]) > 0.95  # approach level, closing axis vertical
     assert np.dot(T[:2, 2], T[:2, 3]) > 0  # away from the base
     retreat = motion.segments[-1]
+    assert motion.segments[labels.index("release handle")].gripper == retreat.gripper == 0.0  # wide open
     p0, p1 = (prims.kin.fk(retreat.q[i])[:3, 3] for i in (0, -1))
     T_end = prims.kin.fk(retreat.q[0])
     np.testing.assert_allclose(p1 - p0, -RETREAT * T_end[:3, 2], atol=0.005)
