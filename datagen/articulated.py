@@ -169,7 +169,7 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
         qm = move[-1]
         # A front grasp's fingers leave along the bar's sides, above and below it: wide open, so that an arm a
         # centimetre off its path (a policy's, or DART noise's) does not drag the drawer back out by a fingertip.
-        let_go = g.opening if g.T[2, 2] < -0.7 else 0.0
+        let_go = g.opening if _from_above(g.T) else 0.0
         retreat = planner.line(qm, _retreat_pose(prims.kin.fk(qm)), gripper=let_go, allow=(info.body,))
         return [
             Segment(_timed(move, dt), move, 1.0, verb),
@@ -180,11 +180,16 @@ def _grasp_move(prims, info: JointInfo, target: float, verb: str) -> Motion:
     return _handle_motion(prims, info, verb, after_grasp)
 
 
+def _from_above(T: np.ndarray) -> bool:
+    """A handle grasp from above (the approach pointing down), not from the front (level)."""
+    return bool(T[2, 2] < -0.7)
+
+
 def _retreat_pose(T: np.ndarray) -> np.ndarray:
     """Where the open fingers leave a handle to: straight up from a grasp from above, straight back out along
     the approach from a grasp from the front (up would take the lower finger into the bar)."""
     T = T.copy()
-    if T[2, 2] < -0.7:
+    if _from_above(T):
         T[2, 3] += RETREAT
     else:
         T[:3, 3] -= RETREAT * T[:3, 2]
