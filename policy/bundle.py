@@ -4,7 +4,7 @@ Imports only numpy, onnxruntime and tokenizers (never torch): the robot-side pro
 to start. Layout and graph contracts are written by `policy.export` (see its docstring).
 
     bundle = Bundle.load("bundles/pp")                      # BundleError names what is wrong, before any inference
-    emb = bundle.embed("put the red block in the bowl")      # (384,) unit vector; cached per string
+    emb = bundle.embed("put the red block in the bowl")      # (bundle.instruction_dim,) float32; cached per string
     best, cos = bundle.task_similarity("put the red block in the bowl")   # refuse a command far from training
     chunk = bundle.act({"scene": s, "wrist": w}, proprio, emb, rng=rng)   # (Tp, 10) absolute targets
     todo = chunk[bundle.execute]                             # the Ta actions to run now (rows To-1 .. To-1+Ta-1)
@@ -32,6 +32,7 @@ import numpy as np
 import onnxruntime as ort
 
 from policy.action_frame import FRAMES, from_tcp, orthonormalize_rot6d
+from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.schedule import schedule_steps, step_function
 
@@ -76,6 +77,15 @@ def embed_texts(session: ort.InferenceSession, tokenizer, texts: list[str]) -> n
     return out
 
 
+def goal_clause_of(m: dict) -> bool:
+    """Whether the bundle reads the instruction as [sentence, goal clause] (policy.instruction); older: no."""
+    return bool(m.get("instruction", {}).get("goal_clause", False))
+
+
+def instruction_dim(m: dict) -> int:
+    return TEXT_DIM * (2 if goal_clause_of(m) else 1)
+
+
 def expected_graphs(m: dict) -> dict:
     """The graph I/O that the manifest's own horizons, dims, cameras and image size imply."""
     To, Tp = m["horizons"]["obs"], m["horizons"]["pred"]
@@ -84,7 +94,7 @@ def expected_graphs(m: dict) -> dict:
     io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
     return {
         "obs_encoder": {"inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
-                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", TEXT_DIM], "float32")],
+                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", instruction_dim(m)], "float32")],
                         "outputs": [io("cond", ["B", G], "float32")]},
         "denoiser": {"inputs": [io("noisy_actions", ["B", Tp, Da], "float32"), io("timestep", ["B"], "int64"),
                                 io("cond", ["B", G], "float32")],
@@ -116,6 +126,10 @@ def _check_manifest(m: dict) -> None:
     _need(0 < h["action"] and h["execute_from"] + h["action"] <= h["pred"] and h["execute_from"] < h["obs"],
           f"inconsistent horizons {h}")
     _need(d.get("text") == TEXT_DIM and len(m["image_size"]) == 2 and m["cameras"], "bad text dim, image size or cameras")
+    _need(isinstance(m.get("instruction", {}).get("goal_clause", False), bool)
+          and d.get("instruction", TEXT_DIM) == instruction_dim(m),
+          f"dims.instruction {d.get('instruction')} does not match instruction {m.get('instruction')}: expected "
+          f"{TEXT_DIM} (the sentence) or, with goal_clause true, {2 * TEXT_DIM}")
     frame = m.get("action_layout", {}).get("frame", "base")
     _need(frame in FRAMES, f"action_layout frame {frame!r} is none of {list(FRAMES)}")
     if "ddim" in m:
@@ -233,7 +247,8 @@ class Bundle:
         # keeps to the denser middle of the learned action distribution (bundles before it: 1).
         self.noise_scale = float(m.get("sampling", {}).get("noise_scale", 1.0))
         self._cache: dict[str, np.ndarray] = {}
-        self._refs = np.zeros((0, TEXT_DIM), np.float32)
+        self.goal_clause, self.instruction_dim = goal_clause_of(m), instruction_dim(m)
+        self._refs = np.zeros((0, self.instruction_dim), np.float32)
 
     def check_replan_every(self, n: int) -> None:
         check_replan_every(n, self.action_horizon)
@@ -300,9 +315,11 @@ class Bundle:
         return self._refs
 
     def embed(self, text: str) -> np.ndarray:
-        """(384,) float32 unit vector of `text` (MiniLM, int8 weights), cached per string."""
+        """(instruction_dim,) float32: MiniLM's (int8 weights) unit vector of `text`, and with goal_clause its goal
+        clause's after it (policy.instruction); cached per string."""
         if text not in self._cache:
-            self._cache[text] = embed_texts(self.sessions["text_encoder"], self.tokenizer, [text])[0]
+            embed = lambda texts: embed_texts(self.sessions["text_encoder"], self.tokenizer, texts)  # noqa: E731
+            self._cache[text] = embed_instructions(embed, [text], self.goal_clause)[0]
         return self._cache[text]
 
     def text_reference_cosines(self) -> np.ndarray:
@@ -325,11 +342,12 @@ class Bundle:
               f"{ref['sentences'][k]!r}; rebuild: run `sudd export --restore-text-encoder {self.root}`")
 
     def task_similarity(self, text: str | np.ndarray) -> tuple[str | None, float]:
-        """(closest trained instruction, cosine); (None, 0.0) for a bundle that records no instructions."""
-        refs = self._reference_embeddings()
+        """(closest trained instruction, cosine of the sentences' embeddings, goal clauses aside); (None, 0.0) for a
+        bundle that records no instructions."""
+        refs = self._reference_embeddings()[:, :TEXT_DIM]
         if not len(refs):
             return None, 0.0
-        e = self.embed(text) if isinstance(text, str) else np.asarray(text, np.float32)
+        e = (self.embed(text) if isinstance(text, str) else np.asarray(text, np.float32))[:TEXT_DIM]
         cos = refs @ (e / max(float(np.linalg.norm(e)), 1e-12))
         k = int(np.argmax(cos))
         return self.instructions[k], float(cos[k])
@@ -340,7 +358,7 @@ class Bundle:
         """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
 
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
-        (384,); noise: the initial (Tp, Da) sample, used as given (else drawn from `rng`, N(0, noise_scale^2 I)).
+        (instruction_dim,) from `embed`; noise: the initial (Tp, Da) sample, used as given (else drawn from `rng`, N(0, noise_scale^2 I)).
         `trace`, if a list, receives cond then (x_t, t, predicted noise) per step (for parity checks).
         """
         To, (H, W) = self.obs_horizon, self.image_size
@@ -355,8 +373,8 @@ class Bundle:
         if p.shape != (To, self.proprio_dim) or not np.all(np.isfinite(p)):
             raise ValueError(f"proprio: expected finite ({To}, {self.proprio_dim}), got {p.shape}")
         e = np.asarray(text_embedding, np.float32).reshape(-1)
-        if e.shape != (TEXT_DIM,) or not np.all(np.isfinite(e)):
-            raise ValueError(f"text_embedding: expected finite ({TEXT_DIM},), got {e.shape}")
+        if e.shape != (self.instruction_dim,) or not np.all(np.isfinite(e)):
+            raise ValueError(f"text_embedding: expected finite ({self.instruction_dim},) (Bundle.embed), got {e.shape}")
         feeds["proprio"] = (p * self.stats["proprio_scale"] + self.stats["proprio_offset"])[None].astype(np.float32)
         feeds["text_embedding"] = e[None]
         cond = self.sessions["obs_encoder"].run(None, feeds)[0]

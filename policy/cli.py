@@ -40,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "conditioning input zero-initialized; see policy.warm_start), or from an exported BUNDLE's weights "
         "rebuilt from its graphs (e.g. policy/bundles/demo, to fine-tune the shipped policy); ignored when "
         "resuming"))
+    tr.add_argument("--encoders-from", type=Path, metavar="PRETRAIN_RUN", help=(
+        "with --init-from RUN: take the image encoders and aux head from this `sudd pretrain` run instead of RUN's "
+        "(keep RUN's denoiser, e.g. after pretraining the encoders again on new views or with text_goal)"))
     tr.add_argument("--device", default="auto", help="auto|cpu|cuda|cuda:N (default auto)")
     tr.add_argument("--nproc", type=int, default=1, help="processes for DistributedDataParallel (torchrun)")
     tr.add_argument("--threads", type=int, metavar="N", help=(
@@ -175,6 +178,7 @@ def _train(args) -> int:
         cmd += ["--steps", str(args.steps)] if args.steps else ["--epochs", str(args.epochs)]
         cmd += [a for s in args.set for a in ("--set", s)] + (["--fresh"] if args.fresh else [])
         cmd += ["--init-from", str(args.init_from)] if args.init_from else []
+        cmd += ["--encoders-from", str(args.encoders_from)] if args.encoders_from else []
         return subprocess.call(cmd, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     from policy.train import train
 
@@ -182,7 +186,7 @@ def _train(args) -> int:
         raise ValueError(f"--threads {args.threads}: expected a positive number of threads")
     summary = train(args.data, args.config, args.out, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
                     device=args.device, overrides=parse_overrides(args.set), init_from=args.init_from,
-                    threads=args.threads)
+                    encoders_from=args.encoders_from, threads=args.threads)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -61,6 +61,9 @@ class PolicyConfig:
     # channels, so the spatial-softmax keypoints can follow *the named* object. Without it the keypoints are
     # instruction-blind and 300 demos did not teach the denoiser to pick the target among distractors.
     text_film: bool = True
+    # The instruction as [sentence embedding, goal clause embedding] (policy.instruction): MiniLM's mean pooling
+    # leaves "stack A on B" and "stack B on A" 0.997 alike; the goal clause ("on the B") says which is which.
+    text_goal: bool = False
     proprio_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     text_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     # denoiser
@@ -213,6 +216,11 @@ class PolicyConfig:
         with aux_condition, the aux head's aux_dim outputs."""
         per_step = len(self.cameras) * self.image_feature_dim + self.proprio_feature_dim
         return self.obs_horizon * per_step + self.text_feature_dim + (self.aux_dim if self.aux_condition else 0)
+
+    @property
+    def text_input_dim(self) -> int:
+        """The instruction vector the networks read: the sentence's embedding, then with text_goal its goal clause's."""
+        return TEXT_DIM * (2 if self.text_goal else 1)
 
     @property
     def aux_dim(self) -> int:

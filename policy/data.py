@@ -49,6 +49,7 @@ from datagen.store import Dataset as EpisodeStore
 from policy.action_frame import points_to_tcp, relative_windows, to_tcp
 from policy.config import AUX_TCP_SCALE, PolicyConfig  # noqa: F401 (AUX_TCP_SCALE: policy.data API)
 from policy.grasp_axis import axis_label, episode_target_has_axis, yaw_of
+from policy.instruction import embed_instructions
 from policy.normalize import Normalizer
 
 
@@ -234,9 +235,9 @@ class PolicyDataset(torch.utils.data.Dataset):
             from policy.text import default_embedder
 
             embedder = default_embedder()
-        table = np.asarray(embedder(texts), np.float32)
-        if table.shape != (len(texts), 384):
-            raise ValueError(f"embedder returned {table.shape}, expected ({len(texts)}, 384)")
+        table = embed_instructions(embedder, texts, self.cfg.text_goal)
+        if table.shape != (len(texts), self.cfg.text_input_dim):
+            raise ValueError(f"embedder returned {table.shape}, expected ({len(texts)}, {self.cfg.text_input_dim})")
         self.text_row = {t: k for k, t in enumerate(texts)}
         self.text_table = torch.from_numpy(table)
 

@@ -8,7 +8,8 @@ Bundle layout (format "sudd-policy-bundle", version 1):
                          image/crop size, tasks + known instructions, data content hash, config, DDIM schedule,
                          parameter counts, file sizes + sha256, weight storage, text-encoder and parity figures
     obs_encoder.onnx     image_<camera> uint8 (B,To,H,W,3) full frames, proprio (B,To,Dp) normalized,
-                         text_embedding (B,384) -> cond (B,G); the centre crop and /255 are inside the graph
+                         text_embedding (B,I) -> cond (B,G); the centre crop and /255 are inside the graph;
+                         I = 384, or 768 with "instruction": {"goal_clause": true} (policy.instruction)
     denoiser.onnx        noisy_actions (B,Tp,Da), timestep (B,) int64, cond (B,G) -> noise_pred (B,Tp,Da)
     text_encoder.onnx    input_ids, attention_mask (B,L) int64 -> embedding (B,384), weight-only int8 MiniLM
     tokenizer/           tokenizer.json (+ vocab and configs) for `tokenizers`
@@ -107,7 +108,7 @@ def graph_specs(cfg: PolicyConfig) -> dict:
     return {
         "obs_encoder": {"file": "obs_encoder.onnx",
                         "inputs": [_io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in cfg.cameras]
-                        + [_io("proprio", ["B", To, Dp], "float32"), _io("text_embedding", ["B", TEXT_DIM], "float32")],
+                        + [_io("proprio", ["B", To, Dp], "float32"), _io("text_embedding", ["B", cfg.text_input_dim], "float32")],
                         "outputs": [_io("cond", ["B", G], "float32")]},
         "denoiser": {"file": "denoiser.onnx",
                      "inputs": [_io("noisy_actions", ["B", Tp, Da], "float32"), _io("timestep", ["B"], "int64"),
@@ -153,7 +154,7 @@ def write_policy_graphs(model: DiffusionPolicy, out_dir: Path, opset: int = OPSE
     H, W = cfg.image_size
     ex_imgs = [torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
                for _ in cfg.cameras]
-    ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_dim), torch.randn(1, TEXT_DIM)
+    ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_dim), torch.randn(1, cfg.text_input_dim)
     so, sd = specs["obs_encoder"], specs["denoiser"]
     info = {"obs_encoder": _write_graph(_ObsGraph(model), (*ex_imgs, ex_p, ex_t), out_dir / so["file"], so, opset,
                                         fp16)}
@@ -254,7 +255,8 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "horizons": {"obs": cfg.obs_horizon, "pred": cfg.pred_horizon, "action": cfg.action_horizon,
                          "execute_from": cfg.obs_horizon - 1, "control_hz": 10.0},
             "dims": {"proprio": cfg.proprio_dim, "action": cfg.action_dim, "text": TEXT_DIM,
-                     "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim},
+                     "instruction": cfg.text_input_dim, "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim},
+            "instruction": {"goal_clause": cfg.text_goal},
             "action_layout": {"position": [0, 3], "rot6d": [3, 9], "gripper": [9, 10], "frame": cfg.action_frame},
             "cameras": list(cfg.cameras), "image_size": list(cfg.image_size), "crop_size": list(cfg.crop_size),
             "graphs": specs,

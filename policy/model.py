@@ -3,7 +3,7 @@
 Shapes (B batch, To obs horizon, Tp prediction horizon, Da action dim, Dp proprio dim, G global cond dim):
 
     ImageEncoder     (N, 3, h, w) float in [0, 1]                          -> (N, image_feature_dim)
-    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, Dp) normalized, text (B, 384) -> (B, G)
+    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, Dp) normalized, text (B, cfg.text_input_dim) -> (B, G)
     ConditionalUnet1D  noisy actions (B, Tp, Da), timestep (B,) int64, cond (B, G)  -> predicted noise (B, Tp, Da)
                      (= .denoise(noisy, timestep, .condition(cond)), with .condition(cond) -> (B, F) FiLM part)
     DiffusionPolicy  .encode(...) -> (B, G); .forward(noisy, t, cond) -> (B, Tp, Da); .loss(...) -> scalar
@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policy.config import TEXT_DIM, PolicyConfig
+from policy.config import PolicyConfig
 from policy.graph_frames import release_to_tcp
 
 
@@ -126,12 +126,12 @@ class ObsEncoder(nn.Module):
         super().__init__()
         self.cameras = tuple(cfg.cameras)
         self.images = nn.ModuleDict({c: ImageEncoder(cfg.encoder_widths, cfg.encoder_blocks, cfg.keypoints,
-                                                     cfg.image_feature_dim, TEXT_DIM if cfg.text_film else 0,
+                                                     cfg.image_feature_dim, cfg.text_input_dim if cfg.text_film else 0,
                                                      cfg.encoder_strides)
                                      for c in self.cameras})
         self.proprio = nn.Sequential(nn.Linear(cfg.proprio_dim, cfg.proprio_feature_dim), nn.Mish(),
                                      nn.Linear(cfg.proprio_feature_dim, cfg.proprio_feature_dim))
-        self.text = nn.Sequential(nn.Linear(TEXT_DIM, cfg.text_feature_dim), nn.Mish(),
+        self.text = nn.Sequential(nn.Linear(cfg.text_input_dim, cfg.text_feature_dim), nn.Mish(),
                                   nn.Linear(cfg.text_feature_dim, cfg.text_feature_dim))
 
     def forward(self, images: dict[str, torch.Tensor] | None, proprio: torch.Tensor, text: torch.Tensor,
@@ -143,9 +143,9 @@ class ObsEncoder(nn.Module):
         return torch.cat([torch.cat(feats, dim=-1).flatten(1), self.text(text)], dim=-1)
 
     def camera_features(self, images: dict[str, torch.Tensor], text: torch.Tensor) -> torch.Tensor:
-        """images {camera: (B, To, 3, h, w)}, text (B, 384) -> (B, To, cameras x image_feature_dim)."""
+        """images {camera: (B, To, 3, h, w)}, text (B, text_input_dim) -> (B, To, cameras x image_feature_dim)."""
         b, to = next(iter(images.values())).shape[:2]
-        per_frame = text.repeat_interleave(to, dim=0)  # (B*To, 384), in the order of images.flatten(0, 1)
+        per_frame = text.repeat_interleave(to, dim=0)  # (B*To, text_input_dim), in the order of images.flatten(0, 1)
         return torch.cat([self.images[c](images[c].flatten(0, 1), per_frame).view(b, to, -1)
                           for c in self.cameras], dim=-1)
 

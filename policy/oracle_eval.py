@@ -77,7 +77,9 @@ class OracleAuxPolicy:
         self.schedule = schedule_for(model, inference_steps)
 
     def embed(self, text: str) -> np.ndarray:
-        return np.asarray(self._embedder([text]), np.float32)[0]
+        from policy.instruction import embed_instructions
+
+        return embed_instructions(self._embedder, [text], self.model.cfg.text_goal)[0]
 
     def cond(self, images: dict, proprio: np.ndarray, text_embedding: np.ndarray):
         """The denoiser's global cond (1, G) with the aux head's points (those `true_points` names) replaced by

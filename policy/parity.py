@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from policy.config import TEXT_DIM
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
 from policy.sampling import predict_chunk, sample
@@ -38,7 +37,7 @@ def _random_observations(cfg, normalizer: Normalizer, trials: int, seed: int):
         images = {c: rng.integers(0, 256, (cfg.obs_horizon, H, W, 3), dtype=np.uint8) for c in cfg.cameras}
         lo, hi = normalizer.proprio_min, normalizer.proprio_max
         proprio = (lo + (hi - lo) * rng.random((cfg.obs_horizon, cfg.proprio_dim))).astype(np.float32)
-        text = rng.normal(size=TEXT_DIM).astype(np.float32)
+        text = rng.normal(size=cfg.text_input_dim).astype(np.float32)
         text /= np.linalg.norm(text)
         yield images, proprio, text, rng.normal(size=(cfg.pred_horizon, cfg.action_dim)).astype(np.float32)
 

@@ -43,6 +43,7 @@ from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, jitter_factors
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
+from policy.instruction import embed_instructions
 from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
 from policy.ema import EMA
@@ -73,7 +74,7 @@ class Views:
             axis = axis_label(v["grasp_yaw"], yaw_of(v["proprio"][:, 3:9]), period_has_axis(v["footprint_period"]))
             self.aux = torch.cat([self.aux, torch.from_numpy(axis)], dim=1)
         texts = sorted(set(v["instruction"].tolist()))
-        table = torch.from_numpy(np.asarray(embedder(texts), np.float32))
+        table = torch.from_numpy(embed_instructions(embedder, texts, cfg.text_goal))
         row = {t: k for k, t in enumerate(texts)}
         self.text = table[[row[t] for t in v["instruction"].tolist()]]
         self.scenes = int(len(np.unique(v["seed"])))

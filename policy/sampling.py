@@ -50,7 +50,7 @@ def predict_chunk(model: DiffusionPolicy, normalizer: Normalizer, images: dict[s
                   proprio: np.ndarray, text_embedding: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """One observation (no batch axis) -> (Tp, Da) absolute actions.
 
-    images: camera -> (To, H, W, 3) uint8; proprio (To, Dp) raw; text_embedding (384,); noise (Tp, Da).
+    images: camera -> (To, H, W, 3) uint8; proprio (To, Dp) raw; text_embedding (cfg.text_input_dim,); noise (Tp, Da).
     """
     model.eval()
     imgs = {c: prepare_images(torch.from_numpy(np.asarray(images[c]))[None], model.cfg.crop_size)

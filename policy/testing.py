@@ -24,12 +24,14 @@ TINY = {"image_size": [32, 32], "crop_size": [28, 28], "encoder_widths": [8, 16]
 
 
 def synthetic_dataset(root: str | Path, episodes: int = 6, tasks: tuple[str, ...] = ("pick_place",),
-                      size: int = 32, steps: int | None = None, smooth: bool = False) -> Path:
+                      size: int = 32, steps: int | None = None, smooth: bool = False,
+                      instructions: dict[str, str] | None = None) -> Path:
     """Write `episodes` synthetic episodes per task (about 70 % labelled successful) to root/shards/w0.zarr.
 
     smooth=True replaces the i.i.d. random proprio/actions of `synthetic_episode` by a trajectory that
     follows the square moving across the images (a straight reach, a constant orientation, the gripper
     closing halfway), so a policy has something learnable: the loss of a few training steps must drop.
+    instructions: task -> the command its episodes record (default "do TASK").
     """
     with ShardWriter(root, "w0") as w:
         for task in tasks:
@@ -37,6 +39,8 @@ def synthetic_dataset(root: str | Path, episodes: int = 6, tasks: tuple[str, ...
                 ep = synthetic_episode(task, seed, steps=steps, size=size)
                 if smooth:
                     smooth_episode(ep, seed)
+                if instructions and task in instructions:
+                    ep.meta["instruction"] = instructions[task]
                 w.append(ep)
     return Path(root)
 

@@ -147,7 +147,8 @@ def _dist_setup(device: str) -> tuple[int, int, torch.device]:
 def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "small", out_run_dir: str | Path = "runs/policy",
           steps: int | None = None, epochs: int | None = None, resume: bool = True, device: str = "auto",
           progress: bool = True, stop_at: int | None = None, embedder=None, overrides: dict | None = None,
-          threads: int | None = None, init_from: str | Path | None = None) -> dict:
+          threads: int | None = None, init_from: str | Path | None = None,
+          encoders_from: str | Path | None = None) -> dict:
     """Train (or resume) a policy run; returns the summary (also written to RUN/summary.json).
 
     steps or epochs sets the schedule's length (an epoch = one pass over the samples by all processes).
@@ -155,7 +156,11 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     threads: torch intra-op threads (None: torch's default). On a shared 2-core machine 1 is faster for
     small models: two spinning OpenMP threads stall whenever the OS deschedules one of them.
     init_from: a trained run to warm-start a fresh run from (policy.warm_start); ignored when resuming.
+    encoders_from: with init_from, a `sudd pretrain` run whose image encoders and aux head replace init_from's.
     """
+    if encoders_from is not None and init_from is None:
+        raise ValueError("encoders_from (--encoders-from) replaces the encoders of the run given by init_from "
+                         "(--init-from): give both")
     if threads:
         torch.set_num_threads(threads)
     # DDP notes that 1x1 conv weight grads have different (equivalent) strides than its buckets: harmless
@@ -197,6 +202,8 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
     model = DiffusionPolicy(cfg)
     model.set_proprio_stats(ds.normalizer)
     warm = warm_start.load_into(model, init_from) if ckpt is None and init_from is not None else None
+    if warm is not None and encoders_from is not None:
+        warm["encoders"] = warm_start.load_pretrained_into(model, encoders_from, ds.normalizer)
     if cfg.freeze_pretrained:
         if ckpt is None and init_from is None:
             raise ValueError("freeze_pretrained keeps the image encoders and aux head as initialized: start the "
@@ -357,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=JSON", help="override a config field")
     p.add_argument("--fresh", action="store_true", help="do not resume; start the run over")
     p.add_argument("--init-from", default=None, help="warm-start a new run from this run or bundle (policy.warm_start)")
+    p.add_argument("--encoders-from", default=None, help="with --init-from: the image encoders and aux head of this "
+                   "`sudd pretrain` run (policy.warm_start.load_pretrained_into)")
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -364,7 +373,8 @@ def main(argv: list[str] | None = None) -> int:
 
     overrides = parse_overrides(args.set)
     summary = train(args.data, args.config, args.run, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
-                    device=args.device, progress=not args.no_progress, overrides=overrides, init_from=args.init_from)
+                    device=args.device, progress=not args.no_progress, overrides=overrides, init_from=args.init_from,
+                    encoders_from=args.encoders_from)
     if int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(summary, indent=2))
     if dist.is_initialized():

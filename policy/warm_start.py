@@ -70,6 +70,30 @@ def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
             "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path)}
 
 
+def load_pretrained_into(model: torch.nn.Module, pretrain_run: str | Path, normalizer: Normalizer) -> dict:
+    """Replace `model`'s image encoders and aux head (PRETRAINED) by a `sudd pretrain` run's (after `load_into`
+    took the rest from another run): a denoiser trained on one pretraining goes on with a later one's encoders.
+    Refused unless the pretrain run's proprio normalization is the run's own (its head reads it)."""
+    if not is_pretrain_run(pretrain_run):
+        raise ValueError(f"--encoders-from {pretrain_run}: not a `sudd pretrain` run (its dataset.json does not say "
+                         "\"pretrain\"); give the directory `sudd pretrain --out` wrote")
+    theirs = source_normalizer(pretrain_run)
+    for key in ("proprio_scale", "proprio_offset"):
+        if not torch.allclose(torch.as_tensor(getattr(theirs, key)), torch.as_tensor(getattr(normalizer, key))):
+            raise ValueError(f"--encoders-from {pretrain_run}: its {key} differs from the run's (--init-from's): "
+                             "pretrain it --init-from the same chain of runs, so both read proprio alike")
+    path = source_checkpoint(pretrain_run)
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    prefixes = tuple(p + "." for p in PRETRAINED)
+    old = {k: v for k, v in state["ema"]["model"].items() if k.startswith(prefixes)}
+    own = {k: v for k, v in model.state_dict().items() if k.startswith(prefixes)}
+    if set(old) != set(own):
+        raise ValueError(f"--encoders-from {pretrain_run}: its encoders and head have other tensors "
+                         f"({sorted(set(old) ^ set(own))[:3]}); pretrain with this run's config")
+    return {"source": str(pretrain_run), "checkpoint": str(path), "step": int(state["step"]),
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path)}
+
+
 def _from_bundle(bundle_dir: str | Path) -> tuple[dict, dict]:
     from policy.bundle_import import model_from_bundle
 
