@@ -25,6 +25,12 @@ retrained this way on the same encoders changes where the policy aims, not what 
 control's pretraining (3000 steps over approach + carrying views): release while carrying 14.5 -> 10.4 cm, but the
 grasp point before the grasp 2.35 -> 4.4 cm: on features taught for the approach, the head's one hidden layer
 cannot serve both points; the whole pretraining did better on both (6.7, 3.2 cm).
+
+`episode_share` > 0 fills that share of every batch with recorded frames of --data's training episodes (the
+policy's crop and jitter, the labels of policy.data), streamed from the store. Why: a view is a scene at rest,
+rendered; a recorded frame mid-task is not (stack: the top block in the fingers above the others). The head
+placed the block to stack on 3.5-4 cm off on stack views and 14 cm off on recorded carrying frames: it never saw
+one. Validation stays on the held-out episodes.
 """
 
 from __future__ import annotations
@@ -99,6 +105,33 @@ class Views:
         return {"images": images, "proprio": proprio, "text": self.text[idx], "aux": self.aux[idx]}
 
 
+class EpisodeFrames:
+    """Training samples of recorded episodes as pretraining batches (the Views batch's keys), read per batch."""
+
+    def __init__(self, ds: PolicyDataset):
+        self.ds = ds
+
+    def batch(self, rng: np.random.Generator, size: int) -> dict:
+        picks = rng.integers(0, len(self.ds), size)
+        samples = [self.ds[(int(i), int(rng.integers(2 ** 31)))] for i in picks]
+        jitter = torch.stack([x["jitter"] for x in samples])
+        images = {c: color_jitter(torch.stack([x["images"][c] for x in samples]).float() / 255.0, jitter)
+                  for c in self.ds.cfg.cameras}
+        return {"images": images, **{k: torch.stack([x[k] for x in samples]) for k in ("proprio", "text", "aux")}}
+
+
+def mixed_batch(views: Views, episodes: EpisodeFrames | None, share: float, rng: np.random.Generator,
+                size: int) -> dict:
+    """`size` samples: round(share * size) from the episodes, the rest from the views."""
+    n = round(share * size) if episodes is not None else 0
+    b = views.batch(rng, size - n)
+    if not n:
+        return b
+    e = episodes.batch(rng, n)
+    return {"images": {c: torch.cat([b["images"][c], e["images"][c]]) for c in b["images"]},
+            **{k: torch.cat([b[k], e[k]]) for k in ("proprio", "text", "aux")}}
+
+
 def _names(views_dir) -> str | list[str]:
     return str(views_dir) if isinstance(views_dir, (str, Path)) else [str(d) for d in views_dir]
 
@@ -106,7 +139,7 @@ def _names(views_dir) -> str | list[str]:
 def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | Path | PolicyConfig | dict,
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
              progress: bool = True, embedder=None, init_from: str | Path | None = None,
-             head_only: bool = False) -> dict:
+             head_only: bool = False, episode_share: float = 0.0) -> dict:
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
@@ -115,6 +148,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     differ: the head reads the images and the instruction only, and the views are relabelled for this --data
     (module doc). The run keeps the source's normalization stats, which its encoders were trained with.
     head_only: train the aux head alone, the encoders as init_from left them (module doc).
+    episode_share: the share of each batch taken from the data's training episodes (module doc), in [0, 1).
     """
     from tqdm import tqdm
 
@@ -124,6 +158,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     if cfg.aux_target_weight <= 0 or cfg.aux_target_frame != "tcp":
         raise ValueError("pretraining trains the aux head: it needs aux_target_weight > 0 and "
                          f"aux_target_frame 'tcp' (got {cfg.aux_target_weight}, {cfg.aux_target_frame!r})")
+    if not 0.0 <= episode_share < 1.0:
+        raise ValueError(f"episode_share {episode_share}: expected a share of the batch in [0, 1) (the views fill "
+                         "the rest; 0 = views only)")
     if head_only and init_from is None:
         raise ValueError("head_only trains the aux head on the encoders of an earlier pretrain run: give init_from "
                          "(sudd pretrain --head-only --init-from PRETRAIN_RUN)")
@@ -148,6 +185,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
         validator = Validator(val, fit, seed=cfg.seed, chunks=False)
     offsets = {task: measure_offsets(data_dir, task) for task in view_tasks(views_dir)}
     views = Views(views_dir, cfg, fit.normalizer, embedder, offsets)
+    episodes = None
+    if episode_share > 0:
+        episodes = EpisodeFrames(PolicyDataset(data_dir, cfg, train=True, normalizer=fit.normalizer, embedder=embedder,
+                                               uint8_images=True, split=split, max_cache_bytes=0))
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
     model.set_proprio_stats(fit.normalizer)
@@ -169,7 +210,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     fit.normalizer.save(run_dir / "stats.npz")
     offsets_m = {t: {k: np.round(o[k], 4).tolist() for k in ("grasp", "release")} for t, o in offsets.items()}
     info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
-                                      "offsets_m": offsets_m, "head_only": head_only})
+                                      "offsets_m": offsets_m, "head_only": head_only,
+                                      "episode_share": episode_share})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
@@ -179,7 +221,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     model.train()
     acc, n_acc, t_log = 0.0, 0, time.perf_counter()
     for step in tqdm(range(1, steps + 1), desc="pretrain", unit="step", disable=not progress):
-        b = views.batch(rng, cfg.batch_size)
+        b = mixed_batch(views, episodes, episode_share, rng, cfg.batch_size)
         with torch.set_grad_enabled(not head_only):  # frozen encoders: no backward through them
             features = model.obs_encoder(b["images"], b["proprio"], b["text"])
         loss = F.mse_loss(model.aux_points(features), b["aux"])

@@ -221,3 +221,30 @@ def test_validating_a_pretrain_run_leaves_out_what_its_untrained_denoiser_would_
     pretrain(views_dir, data, dict(TINY), tmp_path / "pre", 2, over, threads=1, progress=False, embedder=hash_embedder)
     got = validate_model(tmp_path / "pre", data, samples=32, val_fraction=0.5, embedder=hash_embedder)
     assert "val_pregrasp_cm" in got and not any(k.endswith(("_loss", "chunk_cm")) for k in got)
+
+
+def test_pretraining_fills_a_share_of_each_batch_with_recorded_frames(views_dir, tmp_path):
+    from policy.config import load_policy_config
+    from policy.data import PolicyDataset
+    from policy.pretrain import EpisodeFrames, Views, mixed_batch, pretrain
+    from policy.testing import TINY, hash_embedder, synthetic_dataset
+
+    data = synthetic_dataset(tmp_path / "data", episodes=4, smooth=True)
+    over = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "warmup_steps": 1, "log_every": 1}
+    cfg = load_policy_config(TINY, over)
+    ds = PolicyDataset(data, cfg, train=True, embedder=hash_embedder, uint8_images=True, max_cache_bytes=0)
+    views = Views(views_dir, cfg, ds.normalizer, hash_embedder, None)
+    b = mixed_batch(views, EpisodeFrames(ds), 0.25, np.random.default_rng(0), 8)
+    assert all(x.shape[:2] == (8, cfg.obs_horizon) for x in b["images"].values())
+    assert b["aux"].shape[0] == b["text"].shape[0] == b["proprio"].shape[0] == 8
+    recorded = torch.stack([ds.aux_target(i) for i in range(len(ds))])
+    found = [bool((recorded == row).all(1).any()) for row in b["aux"]]
+    assert found == [False] * 6 + [True] * 2  # the views first, then round(0.25 * 8) recorded frames
+    assert all(0.0 <= float(x.min()) and float(x.max()) <= 1.0 for x in b["images"].values())
+    pretrain(views_dir, data, dict(TINY), tmp_path / "pre", 2, over, threads=1, progress=False,
+             embedder=hash_embedder, episode_share=0.5)
+    said = json.loads((tmp_path / "pre" / "dataset.json").read_text())["pretrain"]
+    assert said["episode_share"] == 0.5
+    with pytest.raises(ValueError, match=r"episode_share 1.0: expected a share of the batch in \[0, 1\)"):
+        pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
+                 embedder=hash_embedder, episode_share=1.0)
