@@ -39,7 +39,10 @@ def replaced_points(true_points: str) -> tuple[int, ...]:
 class TruePoints:
     """Observer for `run_policy_episode`: the episode's true grasp and release points (2, 3), base frame [m]."""
 
-    def __init__(self, offsets: dict, bias_cm: float, seed: int):
+    def __init__(self, offsets: dict, bias_cm: float, seed: int, task: str = "pick_place"):
+        from datagen.view_anchors import CARRIES
+
+        self.picked, self.goal = CARRIES[task]
         self.offsets, self.points, self._z0 = offsets, None, None
         angle = np.random.default_rng([seed, 23]).uniform(0.0, 2 * np.pi)
         self.bias = bias_cm / 100.0 * np.array([np.cos(angle), np.sin(angle), 0.0])
@@ -48,7 +51,7 @@ class TruePoints:
         from sim.state import StateView
 
         state = StateView(world)
-        obj, bin_ = state.position(inst.params["target"]), state.position(inst.params["bin"])
+        obj, bin_ = state.position(inst.params[self.picked]), state.position(inst.params[self.goal])
         if self._z0 is None:
             self._z0 = obj[2]
         if self.points is None or obj[2] < self._z0 + LIFTED_M:
@@ -138,7 +141,7 @@ def _job(seed: int) -> dict:
 
     s, policy = _WORKER["settings"], _WORKER["policy"]
     offsets = {k: np.asarray(v) for k, v in s["offsets"].items()}
-    policy.truth = TruePoints(offsets, s["bias_cm"], seed)
+    policy.truth = TruePoints(offsets, s["bias_cm"], seed, s["task"])
     t0 = time.perf_counter()
     out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
                              time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"],
@@ -152,18 +155,23 @@ def _job(seed: int) -> dict:
 def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_offset: int = 100000,
                 bias_cm: float = 0.0, inference_steps: int | None = None, dr: str = "heavy", workers: int = 1,
                 progress: bool = True, time_limit_factor: float = 1.0, true_points: str = "both",
-                latency_ms: float | None = None) -> list[dict]:
+                latency_ms: float | None = None, task: str = "pick_place") -> list[dict]:
     """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows.
     true_points: which aux points the truth replaces (TRUE_POINTS); latency_ms: a fixed simulated inference lag
-    (as `sudd eval --latency-ms`: a rerun is then the same episodes) instead of each inference's measured one."""
+    (as `sudd eval --latency-ms`: a rerun is then the same episodes) instead of each inference's measured one.
+    task: a family that carries an object from a grasp to a release (datagen.view_anchors.CARRIES)."""
     replaced_points(true_points)  # a bad name fails here, before any worker starts
-    from datagen.views import TASK, measure_offsets
+    from datagen.view_anchors import CARRIES
+    from datagen.views import measure_offsets
     from runtime.eval_report import failure_table, markdown_table, summarise
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     dataset = json.loads((run_dir / "dataset.json").read_text())
-    offsets = measure_offsets(dataset["path"])
-    settings = {"run": str(run_dir), "task": TASK, "dr": dr, "bias_cm": float(bias_cm), "steps": inference_steps,
+    if task not in CARRIES:
+        raise ValueError(f"oracle-eval --task {task}: expected a family that carries an object, one of "
+                         f"{', '.join(CARRIES)} (a drawer's points are its handle's, not an object's)")
+    offsets = measure_offsets(dataset["path"], task)
+    settings = {"run": str(run_dir), "task": task, "dr": dr, "bias_cm": float(bias_cm), "steps": inference_steps,
                 "time_limit_factor": time_limit_factor, "true_points": true_points,
                 "latency_s": None if latency_ms is None else latency_ms / 1000.0,
                 "holdout": dataset.get("holdout") or {"colors": [], "shapes": []},

@@ -52,6 +52,17 @@ def test_true_points_are_the_object_and_bin_plus_the_offsets_and_bias_moves_the_
     assert not np.allclose(other.points[0], biased.points[0])  # a direction per episode
 
 
+def test_stacks_true_points_are_the_top_block_and_the_one_it_goes_on(run, tmp_path):
+    ep = build_episode("stack", SEED, "heavy", "fast")
+    state = StateView(ep.world)
+    truth = TruePoints(OFFSETS, 0.0, SEED, "stack")
+    truth(ep.world, ep.instance)
+    np.testing.assert_allclose(truth.points[0], state.position(ep.instance.params["top"]) + OFFSETS["grasp"])
+    np.testing.assert_allclose(truth.points[1], state.position(ep.instance.params["bottom"]) + OFFSETS["release"])
+    with pytest.raises(ValueError, match="oracle-eval --task drawer_open: expected a family that carries"):
+        oracle_eval(run, tmp_path / "ev", episodes=1, task="drawer_open", progress=False)
+
+
 def test_the_denoiser_gets_the_true_points_in_the_tcp_frame_and_the_head_is_bypassed(run):
     policy = _policy(run)
     cfg = policy.model.cfg
