@@ -77,6 +77,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     pre.add_argument("--episode-share", type=float, default=0.0, metavar="F", help=(
         "fill this share of every batch with recorded frames of --data's training episodes (default 0: views "
         "only); they show what renders at rest do not, e.g. a block held above the one to stack it on"))
+    pre.add_argument("--episode-task", action="append", default=[], metavar="FAMILY", help=(
+        "with --episode-share: recorded frames of this family only (repeatable; default every family)"))
     pre.add_argument("--head-only", action="store_true",
                      help="with --init-from: train the aux head alone, its encoders frozen (e.g. on carrying "
                           "views, to find the bin while carrying without moving the features the grasp reads; "
@@ -210,7 +212,8 @@ def _pretrain(args) -> int:
     from policy.pretrain import pretrain
 
     summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set),
-                       init_from=args.init_from, head_only=args.head_only, episode_share=args.episode_share)
+                       init_from=args.init_from, head_only=args.head_only, episode_share=args.episode_share,
+                       episode_tasks=tuple(args.episode_task))
     val = summary["validation"] or {}
     print(json.dumps(summary, indent=2) if args.json else
           f"run {summary['run_dir']}: {summary['views']} views of {summary['scenes']} scenes, loss "

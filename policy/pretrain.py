@@ -106,13 +106,18 @@ class Views:
 
 
 class EpisodeFrames:
-    """Training samples of recorded episodes as pretraining batches (the Views batch's keys), read per batch."""
+    """Training samples of recorded episodes as pretraining batches (the Views batch's keys), read per batch;
+    with `tasks`, of those families only."""
 
-    def __init__(self, ds: PolicyDataset):
+    def __init__(self, ds: PolicyDataset, tasks: tuple[str, ...] = ()):
         self.ds = ds
+        self.rows = np.array([i for i in range(len(ds)) if not tasks or ds.task_of(i) in tasks])
+        if not len(self.rows):
+            raise ValueError(f"no training samples of {', '.join(tasks)} in {ds.store.root}: "
+                             f"the data has {', '.join(sorted(set(ds.tasks)))}")
 
     def batch(self, rng: np.random.Generator, size: int) -> dict:
-        picks = rng.integers(0, len(self.ds), size)
+        picks = self.rows[rng.integers(0, len(self.rows), size)]
         samples = [self.ds[(int(i), int(rng.integers(2 ** 31)))] for i in picks]
         jitter = torch.stack([x["jitter"] for x in samples])
         images = {c: color_jitter(torch.stack([x["images"][c] for x in samples]).float() / 255.0, jitter)
@@ -139,7 +144,7 @@ def _names(views_dir) -> str | list[str]:
 def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | Path | PolicyConfig | dict,
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
              progress: bool = True, embedder=None, init_from: str | Path | None = None,
-             head_only: bool = False, episode_share: float = 0.0) -> dict:
+             head_only: bool = False, episode_share: float = 0.0, episode_tasks: tuple[str, ...] = ()) -> dict:
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
@@ -148,7 +153,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     differ: the head reads the images and the instruction only, and the views are relabelled for this --data
     (module doc). The run keeps the source's normalization stats, which its encoders were trained with.
     head_only: train the aux head alone, the encoders as init_from left them (module doc).
-    episode_share: the share of each batch taken from the data's training episodes (module doc), in [0, 1).
+    episode_share: the share of each batch taken from the data's training episodes (module doc), in [0, 1);
+    episode_tasks: of these families only (default all).
     """
     from tqdm import tqdm
 
@@ -188,7 +194,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     episodes = None
     if episode_share > 0:
         episodes = EpisodeFrames(PolicyDataset(data_dir, cfg, train=True, normalizer=fit.normalizer, embedder=embedder,
-                                               uint8_images=True, split=split, max_cache_bytes=0))
+                                               uint8_images=True, split=split, max_cache_bytes=0),
+                                 tuple(episode_tasks))
     torch.manual_seed(cfg.seed)
     model = DiffusionPolicy(cfg)
     model.set_proprio_stats(fit.normalizer)
@@ -211,7 +218,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     offsets_m = {t: {k: np.round(o[k], 4).tolist() for k in ("grasp", "release")} for t, o in offsets.items()}
     info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
                                       "offsets_m": offsets_m, "head_only": head_only,
-                                      "episode_share": episode_share})
+                                      "episode_share": episode_share, "episode_tasks": list(episode_tasks)})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)

@@ -242,9 +242,15 @@ def test_pretraining_fills_a_share_of_each_batch_with_recorded_frames(views_dir,
     assert found == [False] * 6 + [True] * 2  # the views first, then round(0.25 * 8) recorded frames
     assert all(0.0 <= float(x.min()) and float(x.max()) <= 1.0 for x in b["images"].values())
     pretrain(views_dir, data, dict(TINY), tmp_path / "pre", 2, over, threads=1, progress=False,
-             embedder=hash_embedder, episode_share=0.5)
+             embedder=hash_embedder, episode_share=0.5, episode_tasks=("pick_place",))
     said = json.loads((tmp_path / "pre" / "dataset.json").read_text())["pretrain"]
-    assert said["episode_share"] == 0.5
+    assert said["episode_share"] == 0.5 and said["episode_tasks"] == ["pick_place"]
+    two = synthetic_dataset(tmp_path / "two", episodes=6, smooth=True, tasks=("pick_place", "stack"))
+    both = PolicyDataset(two, cfg, train=True, embedder=hash_embedder, uint8_images=True, max_cache_bytes=0)
+    stack = EpisodeFrames(both, ("stack",))
+    assert 0 < len(stack.rows) < len(both) and {both.task_of(int(i)) for i in stack.rows} == {"stack"}
+    with pytest.raises(ValueError, match="no training samples of drawer_open .* the data has pick_place, stack"):
+        EpisodeFrames(both, ("drawer_open",))
     with pytest.raises(ValueError, match=r"episode_share 1.0: expected a share of the batch in \[0, 1\)"):
         pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
                  embedder=hash_embedder, episode_share=1.0)
