@@ -10,6 +10,9 @@ From a `sudd pretrain` run (its dataset.json says "pretrain") only the PRETRAINE
 whatever the rest's shapes: the rest of such a run never trained, so a policy with another observation
 horizon can start from it.
 
+`load_pretrained_into` (`sudd train --init-from RUN --encoders-from PRETRAIN_RUN`) then replaces the encoders and
+head by a later pretraining's: the denoiser goes on from RUN, on what the new encoders see.
+
 The source may also be an exported bundle (a directory with manifest.json, such as policy/bundles/demo): its
 weights are rebuilt from its ONNX graphs (policy.bundle_import, checked against the bundle before use) and
 taken whole, as from a run's checkpoint.
