@@ -167,6 +167,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     if not 0.0 <= episode_share < 1.0:
         raise ValueError(f"episode_share {episode_share}: expected a share of the batch in [0, 1) (the views fill "
                          "the rest; 0 = views only)")
+    if episode_tasks and not episode_share:
+        raise ValueError(f"episode_tasks {list(episode_tasks)} chooses the recorded frames of episode_share, which is 0: "
+                         "give a share too (sudd pretrain --episode-share 0.25 --episode-task ...)")
     if head_only and init_from is None:
         raise ValueError("head_only trains the aux head on the encoders of an earlier pretrain run: give init_from "
                          "(sudd pretrain --head-only --init-from PRETRAIN_RUN)")

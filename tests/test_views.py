@@ -254,3 +254,6 @@ def test_pretraining_fills_a_share_of_each_batch_with_recorded_frames(views_dir,
     with pytest.raises(ValueError, match=r"episode_share 1.0: expected a share of the batch in \[0, 1\)"):
         pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
                  embedder=hash_embedder, episode_share=1.0)
+    with pytest.raises(ValueError, match="episode_tasks \\['pick_place'\\] chooses the recorded frames of episode_share"):
+        pretrain(views_dir, data, dict(TINY), tmp_path / "bad", 1, over, threads=1, progress=False,
+                 embedder=hash_embedder, episode_tasks=("pick_place",))
