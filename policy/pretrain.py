@@ -47,7 +47,7 @@ from datagen.views import load as load_views
 from datagen.views import measure_offsets
 from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
-from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, jitter_factors
+from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, finish_images, jitter_factors
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
 from policy.instruction import embed_instructions
 from policy.model import DiffusionPolicy, count_params
@@ -119,10 +119,9 @@ class EpisodeFrames:
     def batch(self, rng: np.random.Generator, size: int) -> dict:
         picks = self.rows[rng.integers(0, len(self.rows), size)]
         samples = [self.ds[(int(i), int(rng.integers(2 ** 31)))] for i in picks]
-        jitter = torch.stack([x["jitter"] for x in samples])
-        images = {c: color_jitter(torch.stack([x["images"][c] for x in samples]).float() / 255.0, jitter)
-                  for c in self.ds.cfg.cameras}
-        return {"images": images, **{k: torch.stack([x[k] for x in samples]) for k in ("proprio", "text", "aux")}}
+        b = finish_images({"images": {c: torch.stack([x["images"][c] for x in samples]) for c in self.ds.cfg.cameras},
+                           "jitter": torch.stack([x["jitter"] for x in samples])})
+        return {"images": b["images"], **{k: torch.stack([x[k] for x in samples]) for k in ("proprio", "text", "aux")}}
 
 
 def mixed_batch(views: Views, episodes: EpisodeFrames | None, share: float, rng: np.random.Generator,
