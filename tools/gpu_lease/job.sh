@@ -2,6 +2,7 @@
 # On the lent box: set up, generate EPISODES episodes of each of TASKS (default pick_place) on all cores, start
 # one training per NAME='OVERRIDES_JSON' in its own session, all due SECONDS after this script started; then return.
 # usage: bash tools/gpu_lease/job.sh EPISODES SECONDS NAME='{...}' [NAME2='{...}' ...]
+# SEED_OFFSET (default 1000): the data's first seed of each task (texts.py must have embedded the same range).
 # With EVAL_END (epoch s) set, each run is then exported and evaluated on EVAL_EPISODES seeds from EVAL_SEED of
 # each of EVAL_TASKS (default pick_place; finish.sh), the cores shared among the runs.
 set -u
@@ -16,8 +17,9 @@ if command -v nvidia-smi >/dev/null; then
     export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 fi
 $PY -c "import mujoco, ompl, zarr, torch; print('torch', torch.__version__, torch.cuda.is_available())" || exit 4
-# the demo bundle's git-ignored text encoder, which export copies (pack.py: xz keeps the transfer under 64 MiB)
-[ -e policy/bundles/demo/text_encoder.onnx ] || $PY - <<'PYEOF' || exit 5
+# the demo bundle's git-ignored text encoder, which export copies (pack.py --text-encoder: xz keeps the transfer
+# under 64 MiB); a lease that exports nothing there leaves it behind
+[ -e policy/bundles/demo/text_encoder.onnx ] || [ ! -e .gpu/text_encoder.onnx.xz ] || $PY - <<'PYEOF' || exit 5
 import lzma, shutil
 with lzma.open(".gpu/text_encoder.onnx.xz") as f, open("policy/bundles/demo/text_encoder.onnx", "wb") as g:
     shutil.copyfileobj(f, g)
@@ -25,7 +27,7 @@ shutil.copytree(".gpu/tokenizer", "policy/bundles/demo/tokenizer", dirs_exist_ok
 PYEOF
 W=$(( $(nproc) - 1 ))
 OMP_NUM_THREADS=1 timeout -s INT ${DATAGEN_LIMIT_S:-330} $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" \
-    datagen $(printf -- "--task %s " ${TASKS:-pick_place}) --episodes "$N" --seed-offset 1000 --holdout-color purple --path-noise-cm 3 --out /tmp/data \
+    datagen $(printf -- "--task %s " ${TASKS:-pick_place}) --episodes "$N" --seed-offset "${SEED_OFFSET:-1000}" --holdout-color purple --path-noise-cm 3 --out /tmp/data \
     --workers $W \
     2>&1 | tr '\r' '\n' | tail -3
 sleep 2

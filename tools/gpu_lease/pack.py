@@ -1,40 +1,58 @@
 """Pack what a lease's box needs from here into .gpu/ (kept small: the transfer's limit is 64 MiB in all).
 
-usage: python tools/gpu_lease/pack.py PRETRAIN_RUN [BUNDLE]
-- .gpu/<run name>/: the pretrain run's config, dataset and stats, and a checkpoint holding only the EMA weights
-  of the modules a warm start takes from it (policy.warm_start.PRETRAINED), in float16 (half the bytes; the
-  exported bundle rounds its weights to float16 anyway);
-- .gpu/text_encoder.onnx.xz and .gpu/tokenizer/: BUNDLE's text encoder (default policy/bundles/demo), which
-  `sudd export --text-encoder-from` copies on a box without the MiniLM package (xz: 23 -> 21 MB).
+usage: python tools/gpu_lease/pack.py RUN [RUN ...] [--text-encoder BUNDLE]
+- .gpu/<run name>/: each run's config, dataset and stats, and a checkpoint holding only its EMA weights in
+  float16 (half the bytes; the exported bundle rounds its weights to float16 anyway): of a `sudd pretrain` run
+  only the modules a warm start takes from it (policy.warm_start.PRETRAINED), of a policy run all of them (the
+  box then goes on training it: `"init_from"` in the variant);
+- with --text-encoder: .gpu/text_encoder.onnx.xz and .gpu/tokenizer/, BUNDLE's text encoder (policy/bundles/demo),
+  which `sudd export --text-encoder-from` copies on a box without the MiniLM package (xz: 23 -> 21 MB). Only a
+  box that exports needs it; a lease whose weights come back to be exported here leaves it behind.
 """
+import argparse
 import lzma
 import shutil
-import sys
 from pathlib import Path
 
 import torch
 
 from policy.train import latest_checkpoint
-from policy.warm_start import PRETRAINED
+from policy.warm_start import PRETRAINED, is_pretrain_run
 
 
-def main() -> None:
-    run, bundle = Path(sys.argv[1]), Path(sys.argv[2] if len(sys.argv) > 2 else "policy/bundles/demo")
+def pack_run(run: Path) -> Path:
     dst = Path(".gpu") / run.name
-    (dst / "checkpoints").mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        shutil.rmtree(dst)  # an older pack's checkpoint of another step would be the one taken
+    (dst / "checkpoints").mkdir(parents=True)
     for f in ("config.json", "dataset.json", "stats.npz"):
         shutil.copy(run / f, dst / f)
     ck = latest_checkpoint(run)
     s = torch.load(ck, map_location="cpu", weights_only=False)
-    ema = {k: v.half() if v.is_floating_point() else v for k, v in s["ema"]["model"].items()
-           if k.startswith(tuple(p + "." for p in PRETRAINED))}
+    keep = tuple(p + "." for p in PRETRAINED) if is_pretrain_run(run) else ("",)
+    ema = {k: v.half() if v.is_floating_point() else v for k, v in s["ema"]["model"].items() if k.startswith(keep)}
     torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema, "ema": {"model": ema, "updates": 0},
                 "config": s["config"], "torch": s["torch"]}, dst / "checkpoints" / ck.name)
+    print(f"{dst}: {sum(v.numel() for v in ema.values()) / 1e6:.1f} M parameters of {ck.name}, float16")
+    return dst
+
+
+def pack_text_encoder(bundle: Path) -> None:
     with open(bundle / "text_encoder.onnx", "rb") as f, lzma.open(".gpu/text_encoder.onnx.xz", "wb") as g:
         shutil.copyfileobj(f, g)
     shutil.copytree(bundle / "tokenizer", ".gpu/tokenizer", dirs_exist_ok=True)
-    print(f"{dst} ({sum(v.numel() for v in ema.values()) / 1e6:.1f} M parameters, float16), "
-          f".gpu/text_encoder.onnx.xz and .gpu/tokenizer from {bundle}")
+    print(f".gpu/text_encoder.onnx.xz and .gpu/tokenizer from {bundle}")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path)
+    p.add_argument("--text-encoder", type=Path, metavar="BUNDLE")
+    a = p.parse_args()
+    for run in a.runs:
+        pack_run(run)
+    if a.text_encoder:
+        pack_text_encoder(a.text_encoder)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 usage: python tools/gpu_lease/texts.py FIRST LAST OUT.npz [--task T ...] [--holdout-color purple]
 Builds each episode's scene (no physics) and runs the offline planner, as `sudd datagen` does, so the
-texts are exactly those the data will hold; embeds them with the frozen MiniLM (policy.text).
+texts are exactly those the data will hold; embeds them, and their goal clauses (policy.instruction: what a
+`text_goal` policy reads in its second slot), with the frozen MiniLM (policy.text).
 """
 import argparse
 from multiprocessing import Pool
@@ -35,7 +36,10 @@ def main() -> None:
     with Pool(2) as pool:
         jobs = [(t, s, tuple(a.holdout_color)) for t in a.task or ["pick_place"] for s in range(a.first, a.last)]
         rows = pool.map(texts_of, jobs, chunksize=20)
-    texts = sorted({t for r in rows for t in r})
+    from policy.instruction import goal_clause
+
+    said = {t for r in rows for t in r}
+    texts = sorted(said | {c for c in map(goal_clause, said) if c is not None})
     from policy.text import default_embedder
 
     np.savez(a.out, texts=np.array(texts), table=np.asarray(default_embedder()(texts), np.float32))

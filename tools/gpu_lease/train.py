@@ -1,7 +1,8 @@
 """One training run on the lent box: policy.train.train with the precomputed embeddings and a step count
 fitted to the time left. usage: python train.py DATA RUN_DIR DEADLINE_EPOCH_S OVERRIDES_JSON
 OVERRIDES_JSON may name "config" (a preset, .toml or bundle), "base" (a run's config.json whose values come
-first, under the lease's and the variant's) and "init_from" (a run to warm-start from)."""
+first, under the lease's and the variant's), "init_from" (a run to warm-start from) and "encoders_from" (with
+init_from, a pretrain run whose encoders and aux head replace init_from's)."""
 import json
 import os
 import sys
@@ -32,6 +33,7 @@ def main() -> None:
     base = extra.pop("base", None)  # a run's config.json (.gpu/run_famfz_w2): its choices under the lease's
     base = json.loads(Path(base).read_text()) if base else {}
     init_from = extra.pop("init_from", None)  # a run directory carried along (.gpu/run_pre3: the pretrained encoders)
+    encoders_from = extra.pop("encoders_from", None)
     device = "cuda" if torch.cuda.is_available() else "cpu"  # cpu: a dry run of the scripts
     ov = {**base, "batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
           "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
@@ -39,7 +41,7 @@ def main() -> None:
     # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
     probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
     train(data, config, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
-          init_from=init_from)
+          init_from=init_from, encoders_from=encoders_from)
     rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     rates = [r["steps_per_s"] for r in rows if "steps_per_s" in r]  # validation rows have none
     rate = float(np.median(rates[len(rates) // 2:]))
