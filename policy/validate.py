@@ -16,13 +16,16 @@ centre crops:
             the grasp the object rides in the fingers and the point it was taken from is not in the images
   release_cm  median error of the aux head's release point over the samples observed while the object is
             carried, before the gripper opens: how well the policy sees where to let go
+  prerelease_cm  the release point's error over the samples observed before the grasp, where nothing is held
+            over the scene: whether the head knows the place and loses it while carrying (stack: the block below)
   axis_deg  with aux_grasp_axis: median error of the head's grasp yaw (degrees, 0-90) over the samples observed
             before the grasp of an object with a grasp axis (a bar) while the gripper is still UNALIGNED_DEG or
             more off it: does it see which way the bar lies (nearer, the label is about "no turn", and a head
             that always says so would score well); guess_axis_deg: that head's error on the same samples
 
 each as val_* (held-out episodes, `val_fraction`) and fit_* (the same number of training samples); on data of
-several task families also val_pregrasp_cm.<family>, val_release_cm.<family> and val_chunk_cm.<family>
+several task families also val_pregrasp_cm.<family>, val_release_cm.<family>, val_prerelease_cm.<family> and
+val_chunk_cm.<family>
 (held-out samples of that family only), because a mixed median hides a family the head does not see (a drawer
 handle among pick_place scenes); and guess_grasp_cm: the error of always answering the training samples' mean
 grasp point, the scale against which a grasp_cm reads (it differs between aux_target_frame base and tcp: 18.8
@@ -106,6 +109,8 @@ class Validator:
                 if before.any():
                     out[f"{name}_pregrasp_cm"] = float(np.median(miss[before, 0]))
                     out.update(_by_family(name, "pregrasp_cm", miss[:, 0], family, before))
+                    out[f"{name}_prerelease_cm"] = float(np.median(miss[before, 1]))
+                    out.update(_by_family(name, "prerelease_cm", miss[:, 1], family, before))
                 if carrying.any():
                     out[f"{name}_release_cm"] = float(np.median(miss[carrying, 1]))
                     out.update(_by_family(name, "release_cm", miss[:, 1], family, carrying))

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from policy.config import load_policy_config
-from policy.data import PolicyDataset
+from policy.data import PolicyDataset, finish_images
 from policy.model import DiffusionPolicy
 from policy.testing import TINY, hash_embedder, synthetic_dataset
 from policy.train import StepBatches, latest_checkpoint, load_run_model, lr_factor, train
@@ -170,7 +170,16 @@ def test_validation_keeps_whole_episodes_out_and_logs_the_gap(tmp_path):
     assert first == check(model, torch.device("cpu"))  # fixed samples, noise and timesteps
     assert set(first) == {"val_loss", "fit_loss", "val_grasp_cm", "fit_grasp_cm", "guess_grasp_cm",
                           "val_pregrasp_cm", "fit_pregrasp_cm", "val_release_cm", "fit_release_cm",
-                          "val_chunk_cm", "fit_chunk_cm"}
+                          "val_prerelease_cm", "fit_prerelease_cm", "val_chunk_cm", "fit_chunk_cm"}
+    # prerelease: the release point's error on the samples before the grasp (where nothing is held over the scene)
+    ds, idx = check.sets["val"]
+    early = [int(i) for i in idx if ds.before_grasp(int(i))]
+    with torch.no_grad():
+        b = torch.utils.data.default_collate([ds[i] for i in early])
+        b = finish_images(b) if ds.uint8_images else b
+        pred = model.eval().aux_points(model.obs_encoder(b["images"], b["proprio"], b["text"]))[:, 3:6].numpy()
+    miss = np.linalg.norm(check._metres(pred) - check._metres(b["aux"][:, 3:6].numpy()), axis=1) * 100
+    assert first["val_prerelease_cm"] == pytest.approx(float(np.median(miss)), rel=1e-5)
     assert "val_chunk_cm" not in Validator(val, fit, samples=16, batch=8, chunks=False)(model, torch.device("cpu"))
     # before the grasp = the newest observed step precedes the gripper's first close command
     for ds, idx in check.sets.values():
