@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     length = tr.add_mutually_exclusive_group(required=True)
     length.add_argument("--steps", type=int, help="optimizer steps in the schedule")
     length.add_argument("--epochs", type=int, help="passes over the samples")
+    tr.add_argument("--stop-at", type=int, metavar="STEP", help=(
+        "leave after STEP with a checkpoint, the schedule still --steps long (as a preemption would: the same "
+        "command without it goes on); e.g. to rebuild a run that ended early"))
     tr.add_argument("--set", action="append", default=[], metavar="FIELD=JSON", help="override a config field")
     tr.add_argument("--fresh", action="store_true", help="start over instead of resuming")
     tr.add_argument("--init-from", type=Path, metavar="RUN|BUNDLE", help=(
@@ -188,14 +191,17 @@ def _train(args) -> int:
         cmd += [a for s in args.set for a in ("--set", s)] + (["--fresh"] if args.fresh else [])
         cmd += ["--init-from", str(args.init_from)] if args.init_from else []
         cmd += ["--encoders-from", str(args.encoders_from)] if args.encoders_from else []
+        cmd += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
         return subprocess.call(cmd, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     from policy.train import train
 
     if args.threads is not None and args.threads < 1:
         raise ValueError(f"--threads {args.threads}: expected a positive number of threads")
+    if args.stop_at is not None and args.stop_at < 1:
+        raise ValueError(f"--stop-at {args.stop_at}: expected a step >= 1")
     summary = train(args.data, args.config, args.out, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
                     device=args.device, overrides=parse_overrides(args.set), init_from=args.init_from,
-                    encoders_from=args.encoders_from, threads=args.threads)
+                    encoders_from=args.encoders_from, threads=args.threads, stop_at=args.stop_at)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -366,6 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--init-from", default=None, help="warm-start a new run from this run or bundle (policy.warm_start)")
     p.add_argument("--encoders-from", default=None, help="with --init-from: the image encoders and aux head of this "
                    "`sudd pretrain` run (policy.warm_start.load_pretrained_into)")
+    p.add_argument("--stop-at", type=int, default=None, help="leave after this step with a checkpoint")
     p.add_argument("--device", default="auto")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -374,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
     overrides = parse_overrides(args.set)
     summary = train(args.data, args.config, args.run, steps=args.steps, epochs=args.epochs, resume=not args.fresh,
                     device=args.device, progress=not args.no_progress, overrides=overrides, init_from=args.init_from,
-                    encoders_from=args.encoders_from)
+                    encoders_from=args.encoders_from, stop_at=args.stop_at)
     if int(os.environ.get("RANK", "0")) == 0:
         print(json.dumps(summary, indent=2))
     if dist.is_initialized():

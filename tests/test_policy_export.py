@@ -228,24 +228,26 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
         parser.parse_args(["train", "data", "--out", "r"])  # --steps or --epochs is required
 
 
-def test_cli_train_passes_its_thread_count_and_refuses_zero(monkeypatch, capsys):
+def test_cli_train_passes_its_thread_count_and_stop_step_and_refuses_zero(monkeypatch, capsys):
     import argparse
 
     import policy.train
     from policy.cli import register
 
     seen = []
-    monkeypatch.setattr(policy.train, "train", lambda *a, **kw: seen.append(kw["threads"]) or {
+    monkeypatch.setattr(policy.train, "train", lambda *a, **kw: seen.append((kw["threads"], kw["stop_at"])) or {
         "run_dir": "r", "step": 1, "total_steps": 1, "final_loss": 0.5, "checkpoint": None, "plot": None})
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
-    for extra in (["--threads", "1"], []):
+    for extra in (["--threads", "1", "--stop-at", "3"], []):
         args = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", *extra])
         assert args.func(args) == 0
-    assert seen == [1, None]
-    with pytest.raises(ValueError, match="--threads 0: expected a positive number"):
-        args = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", "--threads", "0"])
-        args.func(args)
+    assert seen == [(1, 3), (None, None)]
+    for bad, why in ((["--threads", "0"], "--threads 0: expected a positive number"),
+                     (["--stop-at", "0"], "--stop-at 0: expected a step >= 1")):
+        with pytest.raises(ValueError, match=why):
+            args = parser.parse_args(["train", "data", "--out", "r", "--steps", "5", *bad])
+            args.func(args)
 
 
 class _StandIn:
