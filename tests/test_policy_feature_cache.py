@@ -44,6 +44,9 @@ def test_cached_features_give_the_loss_the_images_give(data_dir):
     # Unaugmented samples (train=False: centre crop, no jitter) read copy 0: the same loss as from the images.
     named = PolicyDataset(data_dir, cfg, train=False, embedder=hash_embedder, normalizer=with_images.normalizer,
                           read_images=False)
+    # it holds no frames (the table's one pass reads them from the store) and builds the same table
+    assert named.images is None and with_images.images is not None
+    assert torch.equal(image_feature_table(model, named, copies=3, seed=5, progress=False), table)
     picks = [0, 7, len(named) - 1]  # the last one repeats an episode's last frame (clamped window)
     a = default_collate([with_images[i] for i in picks])
     b = default_collate([named[i] for i in picks])
