@@ -2,8 +2,8 @@
 
 usage: python tools/gpu_lease/pack.py RUN [RUN ...] [--text-encoder BUNDLE]
 - .gpu/<run name>/: each run's config, dataset and stats, and a checkpoint holding only its EMA weights in
-  float16 (half the bytes; the exported bundle rounds its weights to float16 anyway): of a `sudd pretrain` run
-  only the modules a warm start takes from it (policy.warm_start.PRETRAINED), of a policy run all of them (the
+  float16 (half the bytes; the exported bundle rounds its weights to float16 anyway; buffers stay float32): of
+  a `sudd pretrain` run only the modules a warm start takes from it (policy.warm_start.PRETRAINED), of a policy run all of them (the
   box then goes on training it: `"init_from"` in the variant);
 - with --text-encoder: .gpu/text_encoder.onnx.xz and .gpu/tokenizer/, BUNDLE's text encoder (policy/bundles/demo),
   which `sudd export --text-encoder-from` copies on a box without the MiniLM package (xz: 23 -> 21 MB). Only a
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from policy.train import latest_checkpoint
+from policy.train import latest_checkpoint, load_run_model
 from policy.warm_start import PRETRAINED, is_pretrain_run
 
 
@@ -30,7 +30,11 @@ def pack_run(run: Path) -> Path:
     ck = latest_checkpoint(run)
     s = torch.load(ck, map_location="cpu", weights_only=False)
     keep = tuple(p + "." for p in PRETRAINED) if is_pretrain_run(run) else ("",)
-    ema = {k: v.half() if v.is_floating_point() else v for k, v in s["ema"]["model"].items() if k.startswith(keep)}
+    # buffers stay float32: the proprio stats in them must equal the run's stats.npz, which a warm start takes
+    # (rounded, a bundle's graphs disagree with its stats by 1e-3 and `bundle_import` refuses to rebuild it)
+    buffers = {name for name, _ in load_run_model(run)[0].named_buffers()}
+    ema = {k: v.half() if v.is_floating_point() and k not in buffers else v
+           for k, v in s["ema"]["model"].items() if k.startswith(keep)}
     torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema, "ema": {"model": ema, "updates": 0},
                 "config": s["config"], "torch": s["torch"]}, dst / "checkpoints" / ck.name)
     print(f"{dst}: {sum(v.numel() for v in ema.values()) / 1e6:.1f} M parameters of {ck.name}, float16")
