@@ -3,8 +3,8 @@
 usage: python tools/gpu_lease/pack.py RUN [RUN ...] [--text-encoder BUNDLE]
 - .gpu/<run name>/: each run's config, dataset and stats, and a checkpoint holding only its EMA weights in
   float16 (half the bytes; the exported bundle rounds its weights to float16 anyway; buffers stay float32): of
-  a `sudd pretrain` run only the modules a warm start takes from it (policy.warm_start.PRETRAINED), of a policy run all of them (the
-  box then goes on training it: `"init_from"` in the variant);
+  a `sudd pretrain` run only the modules a warm start takes from it (policy.warm_start.PRETRAINED), of a policy
+  run all of them (the box then goes on training it: `"init_from"` in the variant);
 - with --text-encoder: .gpu/text_encoder.onnx.xz and .gpu/tokenizer/, BUNDLE's text encoder (policy/bundles/demo),
   which `sudd export --text-encoder-from` copies on a box without the MiniLM package (xz: 23 -> 21 MB). Only a
   box that exports needs it; a lease whose weights come back to be exported here leaves it behind.
