@@ -20,6 +20,14 @@ from policy.train import latest_checkpoint, load_run_model
 from policy.warm_start import PRETRAINED, is_pretrain_run
 
 
+def float16_weights(run: Path, state: dict) -> dict:
+    """`state` (a checkpoint's tensors of `run`'s model) with its float weights in float16 and its buffers as they
+    are: the proprio stats in them must stay the run's stats.npz, which a warm start takes (rounded, a bundle's
+    graphs disagree with its stats by 1e-3 and `bundle_import` refuses to rebuild it). pull.py uses it too."""
+    buffers = {name for name, _ in load_run_model(run)[0].named_buffers()}
+    return {k: v.half() if v.is_floating_point() and k not in buffers else v for k, v in state.items()}
+
+
 def pack_run(run: Path) -> Path:
     dst = Path(".gpu") / run.name
     if dst.exists():
@@ -30,11 +38,7 @@ def pack_run(run: Path) -> Path:
     ck = latest_checkpoint(run)
     s = torch.load(ck, map_location="cpu", weights_only=False)
     keep = tuple(p + "." for p in PRETRAINED) if is_pretrain_run(run) else ("",)
-    # buffers stay float32: the proprio stats in them must equal the run's stats.npz, which a warm start takes
-    # (rounded, a bundle's graphs disagree with its stats by 1e-3 and `bundle_import` refuses to rebuild it)
-    buffers = {name for name, _ in load_run_model(run)[0].named_buffers()}
-    ema = {k: v.half() if v.is_floating_point() and k not in buffers else v
-           for k, v in s["ema"]["model"].items() if k.startswith(keep)}
+    ema = float16_weights(run, {k: v for k, v in s["ema"]["model"].items() if k.startswith(keep)})
     torch.save({"step": s["step"], "total_steps": s["total_steps"], "model": ema, "ema": {"model": ema, "updates": 0},
                 "config": s["config"], "torch": s["torch"]}, dst / "checkpoints" / ck.name)
     print(f"{dst}: {sum(v.numel() for v in ema.values()) / 1e6:.1f} M parameters of {ck.name}, float16")

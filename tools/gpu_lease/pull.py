@@ -15,11 +15,9 @@ if ck:
     ema = s["ema"]["model"]  # "model" shares its storage: saved once
     size = sum(v.numel() * v.element_size() for v in ema.values())
     if 15 * 2**20 < size <= 30 * 2**20:  # float16 fits: loading it back casts it to the model's float32
-        # but not the buffers: their proprio stats must stay those of the run's stats.npz (see pack.py)
-        from policy.train import load_run_model
+        from pack import float16_weights  # this script's folder is on sys.path
 
-        buffers = {name for name, _ in load_run_model(run)[0].named_buffers()}
-        ema = {k: v.half() if v.is_floating_point() and k not in buffers else v for k, v in ema.items()}
+        ema = float16_weights(run, ema)
         size //= 2
     if size > 15 * 2**20:
         print(f"{run.name}: EMA weights {size / 2**20:.0f} MiB, over the 16 MiB a file: left on the box")
