@@ -196,7 +196,9 @@ def test_watchdog_halts_the_arm_when_the_host_goes_quiet(fake):
 def _watchdog_halts(fake, arm):
     assert fake.state()["watchdog"] == ["input_int_register_0", 2.0]
     assert arm.speed_j([0.2, 0, 0, 0, 0, 0], acceleration=2.0) is True
-    _cycles(arm, 0.6)  # kicked every cycle: still moving
+    # kicked every cycle: reaches and keeps the speed (polled: a loaded CPU delays the twin's first steps)
+    assert _until(lambda: abs(fake.state()["qd"][0] - 0.2) < 0.02, 5.0, arm)
+    _cycles(arm, 0.6)
     assert fake.events()["watchdog_trips"] == 0 and abs(fake.state()["qd"][0] - 0.2) < 0.02
     time.sleep(1.5)  # a hung host: no kicks for longer than 1 / 2 Hz
     ev, st = fake.events(), fake.state()
