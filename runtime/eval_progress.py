@@ -22,6 +22,10 @@ times the gripper stopped holding it (one for a clean place).
 policy that drives to the average target stays 10-20 cm away; one that sees closes to within a few cm and
 misses by a finger's width. Success rates of 0 % cannot tell those apart.
 
+`drawer_max` and `drawer_end` grade a task with the cabinet's drawer (drawer_open, drawer_close, drawer_put):
+the most it was open at any tick and at the end, as fractions of its travel. drawer_put has four stages (open,
+pick, place inside, close); these with `held` say which one an episode reached.
+
 `closes` says how each close of the fingers before the named object was held missed it: the TCP's
 horizontal offset from the object and its yaw off the object's grasp yaw, modulo the turn that maps the
 object's footprint onto itself (a half turn for a bar, a quarter for a square block; none for a cylinder, whose
@@ -42,11 +46,13 @@ from __future__ import annotations
 import numpy as np
 
 from sim.state import StateView
+from sim.tasks.drawer import drawer_fraction
 from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
 TARGET_ENDS = ("held", "outside", "wrong_bin", "goal", "released")
 LIFT_M = 0.01
+CABINET_PARAM = "cabinet"  # a task instance with this parameter has the drawer
 
 
 def target_name(inst) -> str | None:
@@ -69,6 +75,8 @@ class GraspProgress:
         self.releases: list[dict] = []  # {"dx_cm", "dy_cm", "tcp_dx_cm", ...} at each let-go of the named object
         self._closing = False
         self._plan: tuple[np.ndarray, np.ndarray] | None = None  # the accepted chunk: times (s), positions (m)
+        self.drawer_max: float | None = None  # the drawer's largest open fraction so far (None: no drawer)
+        self.drawer_end: float | None = None  # and its latest
 
     def plan(self, times_s, positions) -> None:
         """The chunk the controller now follows: its action times (s, the sim's clock) and TCP targets (N, 3)."""
@@ -88,6 +96,9 @@ class GraspProgress:
                     self.target_lets_go += 1
                     self._release(world, inst)
                 self._holding_target = holding
+        if CABINET_PARAM in inst.params:
+            self.drawer_end = float(drawer_fraction(self._view))
+            self.drawer_max = max(self.drawer_end, self.drawer_max or 0.0)
         closing = world.gripper_command() > 0.5
         if self.target is not None and self.target not in self.held:
             d = float(np.linalg.norm(world.tcp_pose()[:3, 3] - self._view.position(self.target)))

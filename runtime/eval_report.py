@@ -13,6 +13,8 @@ from collections import Counter, defaultdict
 from statistics import median
 from pathlib import Path
 
+from sim.tasks.drawer import OPEN_FRACTION
+
 Z95 = 1.959963984540054
 SUITES = {
     "seen": "held-out seeds, training objects and phrasings",
@@ -58,6 +60,7 @@ def summarise(records: list[dict]) -> list[dict]:
                   for r in rs if r.get("failure") == "no_grasp"]
         yaw = sorted(median(t) for t in turned if t)
         ok, tnp = [r for r in rs if r["success"]], [r for r in rs if r.get("failure") == "target_not_placed"]
+        drawer = [r["drawer_max"] for r in rs if not r["success"] and r.get("drawer_max") is not None]
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
@@ -69,7 +72,8 @@ def summarise(records: list[dict]) -> list[dict]:
                      "release_off_cm": {"success": _last_release_cm(ok), "target_not_placed": _last_release_cm(tnp)},
                      "release_aim_off_cm": {"success": _last_release_cm(ok, "aim_"),
                                             "target_not_placed": _last_release_cm(tnp, "aim_")},
-                     "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end")))})
+                     "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end"))),
+                     "failed_drawer_opened": sum(f >= OPEN_FRACTION for f in drawer) if drawer else None})
     return rows
 
 
@@ -107,8 +111,9 @@ def failure_table(rows: list[dict]) -> str:
              + " | force stops: TCP speed at the stop (median); how many with the fingers closed "
              "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
              "| target_not_placed: the object ended "
-             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) |",
-             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 5)]
+             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) "
+             f"| drawer opened (>= {OPEN_FRACTION:.0%} of its travel) |",
+             "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 6)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
         near, hit = r.get("no_grasp_closest_cm"), r.get("stop_speed_cm_s")
         cells = [str(r.get("failures", {}).get(f, 0)) for f in FAILURES] + [str(r["ends"].get(e, 0)) for e in ends]
@@ -121,6 +126,8 @@ def failure_table(rows: list[dict]) -> str:
         off = (r.get("release_off_cm") or {}).get("target_not_placed")
         aim = (r.get("release_aim_off_cm") or {}).get("target_not_placed")
         cells.append("-" if off is None else f"{off:.1f} cm" + ("" if aim is None else f" (aimed {aim:.1f} cm)"))
+        opened = r.get("failed_drawer_opened")
+        cells.append("-" if opened is None else str(opened))
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

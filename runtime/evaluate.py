@@ -66,6 +66,8 @@ class EpisodeOutcome:
     target_end: str = ""  # a failure that held the named object: where it ended (eval_progress.TARGET_ENDS)
     target_lets_go: int = 0  # times the gripper stopped holding the named object
     releases: list[dict] = field(default_factory=list)  # where it was at each let-go, off the goal (eval_progress)
+    drawer_max: float | None = None  # the drawer's largest open fraction, 0-1 (None: no drawer; eval_progress)
+    drawer_end: float | None = None  # and at the end
 
     def record(self) -> dict:
         out = asdict(self)
@@ -160,6 +162,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     out.closest_cm = None if progress.closest_m is None else round(100 * progress.closest_m, 1)
     out.closes = progress.closes
     out.releases = progress.releases
+    if progress.drawer_max is not None:
+        out.drawer_max, out.drawer_end = round(progress.drawer_max, 3), round(progress.drawer_end, 3)
     return out
 
 

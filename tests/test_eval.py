@@ -98,6 +98,21 @@ def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
     assert out.closest_cm == pytest.approx(100 * np.linalg.norm(tcp - obj), abs=1.0)
 
 
+def test_a_drawer_task_reports_how_far_the_drawer_opened():
+    from datagen.episode import DatagenConfig, run_episode
+    from sim.tasks.drawer import OPEN_FRACTION
+
+    seed = SEED + 1  # an open-loop replay of a contact-rich grasp can miss the bar: on SEED it does (0.34 open)
+    ep = run_episode("drawer_open", seed, DatagenConfig(dr="heavy"))
+    assert ep.meta["success"]
+    out = run_policy_episode(Replay(ep.action), "drawer_open", seed, dr="heavy")
+    assert out.success and out.drawer_end == out.drawer_max >= OPEN_FRACTION, out.record()
+    still = run_policy_episode(Replay(ep.action[:1]), "drawer_open", seed, dr="heavy", time_limit_factor=0.05)
+    assert not still.success and still.drawer_max < 0.1 and still.drawer_end == pytest.approx(still.drawer_max, abs=0.01)
+    # no drawer in pick_place: nothing reported, rather than a 0 that reads as "never opened"
+    assert run_policy_episode(Replay(ep.action[:1]), "pick_place", SEED, time_limit_factor=0.02).drawer_max is None
+
+
 class SlowReplay(Replay):
     """Replay whose inference takes a different wall time on every call (0-12 ms, as a loaded CPU does)."""
 
@@ -297,9 +312,17 @@ def test_summary_table_and_chart(tmp_path):
               "failure": "no_grasp", "end": "timeout", "closest_cm": c, "closes": k}
              for c, k in ((12.5, []), (3.0, [{"yaw_off_deg": y} for y in (-80.0, 88.0, 5.0, None)]),
                           (7.25, [{"yaw_off_deg": 85.0}]))]
+    # drawer_put: two failures opened the drawer (one to the 80 % that counts), one never did; a success did
+    recs += [{"suite": "seen", "task": "drawer_put", "who": "policy", "success": s, "sim_seconds": 60.0,
+              "failure": "" if s else "no_grasp", "end": "success" if s else "timeout", "drawer_max": f}
+             for s, f in ((False, 0.85), (False, 0.79), (False, 0.02), (True, 1.0))]
     rows = summarise(recs)
-    assert [(r["suite"], r["who"], r["successes"], r["n"]) for r in rows] == [
-        ("seen", "collector", 1, 4), ("seen", "policy", 3, 7), ("paraphrase", "policy", 0, 3)]
+    assert [(r["suite"], r["task"], r["who"], r["successes"], r["n"]) for r in rows] == [
+        ("seen", "drawer_put", "policy", 1, 4), ("seen", "pick_place", "collector", 1, 4),
+        ("seen", "pick_place", "policy", 3, 7), ("paraphrase", "pick_place", "policy", 0, 3)]
+    assert rows[0]["failed_drawer_opened"] == 1 and rows[2]["failed_drawer_opened"] is None
+    assert failure_table(rows[:1]).splitlines()[2].endswith("| - | - | 1 |")
+    rows = [r for r in rows if r["task"] == "pick_place"]
     table = markdown_table(rows)
     assert "| seen | pick_place | 3/7 = 43% [16, 75] | 1/4 = 25% [5, 70] | 9.0 s |" in table
     assert "| paraphrase | pick_place | 0/3 = 0% [0, 56] | - | - |" in table
@@ -308,11 +331,12 @@ def test_summary_table_and_chart(tmp_path):
                       "| ended: timeout | force stops: TCP speed at the stop (median); how many with the fingers closed "
                       "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
                       "| target_not_placed: the object ended "
-                      "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) |")
+                      "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) "
+                      "| drawer opened (>= 80% of its travel) |")
     # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm)
     assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | 17.5 cm/s; 1 closed | - | - | held 1, outside 2 "
-                       "| 15.0 cm (aimed 5.0 cm) |",
-                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | - | 7.2 cm | 85 deg | - | - |"]
+                       "| 15.0 cm (aimed 5.0 cm) | - |",
+                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | - | 7.2 cm | 85 deg | - | - | - |"]
     assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
     assert rows[1]["release_aim_off_cm"] == {"success": None, "target_not_placed": 5.0}
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
