@@ -50,7 +50,7 @@ $(VENV)/.installed: pyproject.toml | system-deps
 
 # The main job on the embedded default: the whole runtime stack (robot node with the sim twins, policy node
 # with the shipped five-family bundle, real Zenoh sessions) on a held-out pick_place episode under heavy
-# randomization; it prints the task's success and the latency figures. That policy completes 300 of 320
+# randomization; it prints the task's success and the latency figures. That policy completes 237 of 260
 # held-out pick_place episodes in evaluation (policy/bundles/multitask/RECIPE.md), seed 100003 among them;
 # success depends on the sampler's noise, so expect a failure now and then. Any seed from 100000 up is held
 # out from training: `make demo DEMO_SEED=100010`; another family: `sudd run --sim --task drawer_open ...`.
