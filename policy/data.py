@@ -320,6 +320,15 @@ class PolicyDataset(torch.utils.data.Dataset):
         k, s = self.index[index]
         return s + self.cfg.obs_horizon - 1 < self.grasp_step[k]
 
+    def grasp_ahead(self, index: int) -> tuple[int, bool]:
+        """Which grasp of its episode (0: the first) the sample's newest observation heads for or is in, and
+        whether it still comes before it: a long task grasps more than once (drawer_put: the handle, the
+        object, the handle again), and the frames on the way to a later grasp show that grasp's point."""
+        k, s = self.index[index]
+        now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
+        ahead = int(self.cycle[k][now, 0])
+        return int(np.searchsorted(np.unique(self.cycle[k][:, 0]), ahead)), now < ahead
+
     def carrying(self, index: int) -> bool:
         """Whether the sample's newest observation falls between its episode's grasp and release: the frames
         on which the policy carries the object and aims for the release point."""

@@ -18,6 +18,9 @@ centre crops:
             carried, before the gripper opens: how well the policy sees where to let go
   prerelease_cm  the release point's error over the samples observed before the grasp, where nothing is held
             over the scene: whether the head knows the place and loses it while carrying (stack: the block below)
+  grasp<i>_cm  the grasp point's error over the samples on their way to their episode's grasp i (1: the
+            second), for data with tasks that grasp more than once (drawer_put: the object after the handle):
+            whether the head follows the task to its next stage or keeps pointing at the first grasp
   axis_deg  with aux_grasp_axis: median error of the head's grasp yaw (degrees, 0-90) over the samples observed
             before the grasp of an object with a grasp axis (a bar) while the gripper is still UNALIGNED_DEG or
             more off it: does it see which way the bar lies (nearer, the label is about "no turn", and a head
@@ -79,6 +82,7 @@ class Validator:
             before = np.array([ds.before_grasp(int(i)) for i in idx])
             carrying = np.array([ds.carrying(int(i)) for i in idx])
             family = np.array([ds.task_of(int(i)) for i in idx])
+            ahead = np.array([ds.grasp_ahead(int(i)) for i in idx]).reshape(-1, 2)
             for lo in range(0, len(idx), self.batch):
                 batch = to_device(default_collate([ds[int(i)] for i in idx[lo:lo + self.batch]]), device)
                 batch = finish_images(batch) if ds.uint8_images else batch
@@ -111,6 +115,11 @@ class Validator:
                     out.update(_by_family(name, "pregrasp_cm", miss[:, 0], family, before))
                     out[f"{name}_prerelease_cm"] = float(np.median(miss[before, 1]))
                     out.update(_by_family(name, "prerelease_cm", miss[:, 1], family, before))
+                for g in range(1, int(ahead[:, 0].max(initial=0)) + 1):
+                    on_way = (ahead[:, 0] == g) & ahead[:, 1].astype(bool)
+                    if name == "val" and on_way.any():
+                        out[f"val_grasp{g}_cm"] = float(np.median(miss[on_way, 0]))
+                        out.update(_by_family(name, f"grasp{g}_cm", miss[:, 0], family, on_way))
                 if carrying.any():
                     out[f"{name}_release_cm"] = float(np.median(miss[carrying, 1]))
                     out.update(_by_family(name, "release_cm", miss[:, 1], family, carrying))
