@@ -115,9 +115,9 @@ class Validator:
                     out.update(_by_family(name, "pregrasp_cm", miss[:, 0], family, before))
                     out[f"{name}_prerelease_cm"] = float(np.median(miss[before, 1]))
                     out.update(_by_family(name, "prerelease_cm", miss[:, 1], family, before))
-                for g in range(1, int(ahead[:, 0].max(initial=0)) + 1):
+                for g in range(1, int(ahead[:, 0].max(initial=0)) + 1 if name == "val" else 1):
                     on_way = (ahead[:, 0] == g) & ahead[:, 1].astype(bool)
-                    if name == "val" and on_way.any():
+                    if on_way.any():
                         out[f"val_grasp{g}_cm"] = float(np.median(miss[on_way, 0]))
                         out.update(_by_family(name, f"grasp{g}_cm", miss[:, 0], family, on_way))
                 if carrying.any():
