@@ -320,12 +320,17 @@ class PolicyDataset(torch.utils.data.Dataset):
         k, s = self.index[index]
         return s + self.cfg.obs_horizon - 1 < self.grasp_step[k]
 
+    def _newest_step(self, index: int) -> tuple[int, int]:
+        """(episode, step) of the sample's newest observation, clamped into the episode (windows reach past
+        its ends)."""
+        k, s = self.index[index]
+        return k, min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
+
     def grasp_ahead(self, index: int) -> tuple[int, bool]:
         """Which grasp of its episode (0: the first) the sample's newest observation heads for or is in, and
         whether it still comes before it: a long task grasps more than once (drawer_put: the handle, the
         object, the handle again), and the frames on the way to a later grasp show that grasp's point."""
-        k, s = self.index[index]
-        now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
+        k, now = self._newest_step(index)
         ahead = int(self.cycle[k][now, 0])
         return int(np.searchsorted(np.unique(self.cycle[k][:, 0]), ahead)), now < ahead
 
@@ -338,8 +343,7 @@ class PolicyDataset(torch.utils.data.Dataset):
     def aux_target(self, index: int) -> torch.Tensor:
         """The sample's auxiliary target (cfg.aux_dim,) in the config's `aux_target_frame`, without reading
         images: the grasp and release points, then with aux_grasp_axis the axis (policy.grasp_axis)."""
-        k, s = self.index[index]
-        now = min(max(s + self.cfg.obs_horizon - 1, 0), self.lengths[k] - 1)
+        k, now = self._newest_step(index)
         if self.cfg.aux_target_frame == "tcp":
             points = aux_point_target(self.aux_points[k][now], self.tcp_pose[k][now], self.cfg.aux_release_frame)
             if not self.cfg.aux_grasp_axis:
