@@ -8,7 +8,8 @@ offset measured on recorded episodes (`datagen.views.measure_offsets`), the offs
 - drawer_open, drawer_close, drawer_put: the handle where it is, and where it is with the drawer shut, in the
   cabinet's frame. Why the cabinet's: its yaw is randomized, and the handle travels along the cabinet's own
   axis, so the release (the handle pulled out, or pushed in) is a fixed offset only there. drawer_put's first
-  grasp is the handle's (it opens the drawer first); its views are of that approach.
+  grasp is the handle's (it opens the drawer first); the views of its later grasps (the object, with the
+  drawer open; the handle again, to close it) are datagen/views_stages.py's.
 
 The grasp yaw and footprint period feed the grasp-axis label (policy/grasp_axis.py). A handle is part of the
 cabinet, not a picked-up object, and recorded drawer episodes carry no axis label, so the handle's period is 0.

@@ -28,9 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from datagen.recorder import Recorder
-from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_steps
-from datagen.view_anchors import FAMILIES, anchors, check_carries
+from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_per_step
+from datagen.view_anchors import FAMILIES, check_carries
 from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
+from datagen.views_stages import label_key, parse_key, set_stage, stage_anchors, stages, start_pose
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
@@ -43,31 +44,38 @@ TASK = "pick_place"  # the family of shards rendered before views knew others (t
 def measure_offsets(dataset_dir: str | Path, task: str = TASK, episodes: int = 60) -> dict:
     """Median (recorded grasp target - grasp anchor) and (release target - release anchor), in metres in the
     anchors' frame (datagen/view_anchors.py), over up to `episodes` successful episodes of `task`, each
-    rebuilt from its seed for the anchors."""
+    rebuilt from its seed for the anchors. `task` is a label key (datagen/views_stages.py): a family, or
+    `family/stage` for a long task's later grasp, measured on that grasp cycle of the episodes that made
+    exactly one cycle per stage (a retry's extra cycle would shift the count)."""
     from datagen.store import Dataset
 
-    if task not in FAMILIES:
-        raise ValueError(f"views know the families {', '.join(FAMILIES)}, not {task!r}")
+    family, stage = parse_key(task)
+    if family not in FAMILIES:
+        raise ValueError(f"views know the families {', '.join(FAMILIES)}, not {family!r}")
     store = Dataset(dataset_dir)
     grasp, release = [], []
     for row in store.episodes():
         meta = store.meta(row["index"])
-        if meta["task"] != task or not episode_success(meta):
+        if meta["task"] != family or not episode_success(meta):
             continue
         arrays = store.window(row["index"], fields=("action", "subtask"))
         action = arrays["action"]
-        close, opened = grasp_and_release_steps(action, arrays["subtask"])
+        cycles = np.unique(grasp_and_release_per_step(action, arrays["subtask"]), axis=0)
+        if stage and len(cycles) != len(stages(family)):
+            continue
+        close, opened = (int(x) for x in cycles[stage])
         h = meta.get("holdout") or {}
-        ep = build_episode(task, meta["seed"], "heavy", meta.get("fidelity", "fast"),
+        ep = build_episode(family, meta["seed"], "heavy", meta.get("fidelity", "fast"),
                            holdout=Holdout(tuple(h.get("colors", ())), tuple(h.get("shapes", ()))))
-        a = anchors(ep)
+        set_stage(ep, stage)
+        a = stage_anchors(ep, stage)
         grasp.append(a.frame.T @ (action[close, :3] - a.grasp))
         release.append(a.frame.T @ (action[opened, :3] - a.release))
         if len(grasp) == episodes:
             break
     if not grasp:
-        raise ValueError(f"{dataset_dir}: no successful {task} episode to measure the label offsets on; "
-                         f"record some (sudd datagen --task {task}) or leave {task} out of the views")
+        raise ValueError(f"{dataset_dir}: no successful {family} episode to measure the label offsets of {task} on; "
+                         f"record some (sudd datagen --task {family}) or leave {task} out of the views")
     return {"grasp": np.median(grasp, axis=0), "release": np.median(release, axis=0), "episodes": len(grasp)}
 
 
@@ -90,28 +98,41 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
 
 
 def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout(), fidelity: str = "fast",
-                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK) -> dict:
+                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK, stage: str = "") -> dict:
     """`views` labelled views of the heavy-DR `task` scene of `seed` (the same seed always gives the same
     views), then for a family that carries an object (pick_place, stack) up to `carry` views with it in the
-    closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails)."""
+    closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails).
+    A long task's later `stage` (datagen/views_stages.py) shows the scene as the collector leaves it before
+    that grasp, the views on the way there from the last release; `offsets` are that stage's."""
     if carry:
         check_carries(task)
+    key = label_key(task, stage)
+    index = parse_key(key)[1]
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
-    rng = np.random.default_rng([int(seed), 0x71E5])
-    a = anchors(ep)
+    rng = np.random.default_rng([int(seed), 0x71E5, index] if index else [int(seed), 0x71E5])
+    set_stage(ep, index)
+    a = stage_anchors(ep, index)
     yaw = a.yaw
     grasp, release = a.points(offsets)
     recorder = Recorder(ep, image_size=image_size)
     kin = recorder.kin
     q_home = world.arm_q()
-    home = kin.fk(q_home)
+    start = start_pose(ep, kin.fk(q_home), index)
     try:
+        if index:
+            try:  # where the last release left the arm; home if that is out of reach
+                q_home = kin.ik(start, q_home)
+            except UnreachableError:
+                pass
+            world.data.qpos[world.arm_qpos_adr] = q_home
+            world.set_arm_target(q_home)
+            world.forward()
         recorder.sample()
         for _ in range(views - 1):
             for _attempt in range(5):
                 try:
-                    q = kin.ik(sample_pose(home, grasp, yaw, rng), q_home)
+                    q = kin.ik(sample_pose(start, grasp, yaw, rng), q_home)
                     break
                 except UnreachableError:
                     continue
@@ -130,7 +151,7 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     return {"scene": images["scene"], "wrist": images["wrist"], "proprio": proprio,
             "points": np.tile(np.stack([grasp, release]).astype(np.float32), (n, 1, 1)),
             "grasp_yaw": np.full(n, yaw, np.float32), "footprint_period": np.full(n, a.period, np.float32),
-            "frame": np.tile(a.frame.astype(np.float32), (n, 1, 1)), "task": [task] * n,
+            "frame": np.tile(a.frame.astype(np.float32), (n, 1, 1)), "task": [task] * n, "stage": [stage] * n,
             "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n}
 
 
@@ -156,25 +177,29 @@ def _carry_views(ep, recorder, seed: int, views: int, target: str, grasp, releas
 
 def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdout: Holdout = Holdout(),
              progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0,
-             task: str = TASK) -> list[Path]:
-    """Render views of every seed's `task` scene into shards of SHARD scenes under out_dir; returns the shards."""
+             task: str = TASK, stage: str = "") -> list[Path]:
+    """Render views of every seed's `task` scene (on the way to its grasp `stage`, datagen/views_stages.py) into
+    shards of SHARD scenes under out_dir; returns the shards."""
     from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     shards = []
     starts = range(seeds.start, seeds.stop, SHARD)
-    bar = tqdm(total=len(seeds), desc=f"views {task}", unit="scene", disable=not progress)
+    key = label_key(task, stage)
+    bar = tqdm(total=len(seeds), desc=f"views {key}", unit="scene", disable=not progress)
     for start in starts:
-        path = out / f"views_{task}_{start:08d}.npz"
+        path = out / f"views_{key.replace('/', '-')}_{start:08d}.npz"
         chunk = range(start, min(start + SHARD, seeds.stop))
         if not path.exists():
             parts = []
             for seed in chunk:
-                parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry, task=task))
+                parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry, task=task,
+                                         stage=stage))
                 bar.update(1)
-            merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("instruction", "task")}
-            for k in ("instruction", "task"):
+            text = ("instruction", "task", "stage")
+            merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in text}
+            for k in text:
                 merged[k] = np.array([t for p in parts for t in p[k]])
             tmp = out / f".{path.stem}.partial.npz"  # hidden from load()'s glob until complete
             np.savez(tmp, offset_grasp=offsets["grasp"], offset_release=offsets["release"], **merged)
@@ -201,12 +226,18 @@ def _shard_task(shard: dict) -> str:
     return str(shard["task"][0]) if "task" in shard else TASK
 
 
+def _shard_key(shard: dict) -> str:
+    """The shard's label key (datagen/views_stages.py): its family, or family/stage for a later grasp."""
+    return label_key(_shard_task(shard), str(shard["stage"][0]) if "stage" in shard else "")
+
+
 def tasks(views_dir: str | Path | list) -> list[str]:
-    """The task families the views directory (or directories) holds, sorted."""
+    """The label keys the views directory (or directories) holds, sorted: the task families, and
+    `family/stage` for views of a long task's later grasps (offsets are measured per key)."""
     found = set()
     for path in _shards(views_dir):
         with np.load(path) as shard:
-            found.add(_shard_task(shard))
+            found.add(_shard_key(shard))
     return sorted(found)
 
 
@@ -219,14 +250,15 @@ def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
     parts = [dict(np.load(p)) for p in _shards(views_dir)]
     for p in parts:
         n = len(p["points"])
-        task = _shard_task(p)
+        task, key = _shard_task(p), _shard_key(p)
         p.setdefault("task", np.array([task] * n))
+        p.setdefault("stage", np.array([""] * n))
         p.setdefault("frame", np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)))
         if offsets is not None:
-            if task not in offsets:
-                raise ValueError(f"views of {task} scenes, but no label offsets for {task} (offsets for "
+            if key not in offsets:
+                raise ValueError(f"views of {key} scenes, but no label offsets for {key} (offsets for "
                                  f"{', '.join(sorted(offsets)) or 'no family'}): train on data with {task} episodes")
-            new = offsets[task]
+            new = offsets[key]
             shift = np.stack([new["grasp"] - p["offset_grasp"], new["release"] - p["offset_release"]])
             p["points"] = (p["points"] + np.einsum("nij,kj->nki", p["frame"], shift)).astype(p["points"].dtype)
     keys = set.intersection(*(set(p) for p in parts))  # shards rendered before the grasp yaw was kept lack it

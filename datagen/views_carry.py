@@ -60,7 +60,7 @@ def carry_pose(grasp: np.ndarray, release: np.ndarray, yaw: float, rng: np.rando
     return T
 
 
-def _free_qpos(world, body: str) -> slice:
+def free_qpos(world, body: str) -> slice:
     m = world.model
     joint = int(m.body(body).jntadr[0])
     start = int(m.jnt_qposadr[joint])
@@ -97,7 +97,7 @@ def grasp_in_hand(world, kin, target: str, grasp: np.ndarray, yaw: float, q_home
     world.step(int(round(CLOSE_S / world.timestep)))
     if not StateView(world).holding(target):
         return None
-    return np.linalg.inv(world.tcp_pose()) @ _pose_matrix(world.data.qpos[_free_qpos(world, target)])
+    return np.linalg.inv(world.tcp_pose()) @ _pose_matrix(world.data.qpos[free_qpos(world, target)])
 
 
 def place_carried(world, kin, q: np.ndarray, target: str, in_tcp: np.ndarray) -> None:
@@ -106,7 +106,7 @@ def place_carried(world, kin, q: np.ndarray, target: str, in_tcp: np.ndarray) ->
     world.set_arm_target(q)
     world.forward()
     T = world.tcp_pose() @ in_tcp
-    free = _free_qpos(world, target)
+    free = free_qpos(world, target)
     world.data.qpos[free.start:free.start + 3] = T[:3, 3]
     mujoco.mju_mat2Quat(world.data.qpos[free.start + 3:free.stop], T[:3, :3].flatten())
     world.data.qvel[:] = 0.0

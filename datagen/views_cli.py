@@ -2,6 +2,8 @@
 pretrain the policy's image encoder to find what the instruction names (see datagen/views.py, then
 `sudd pretrain`): the object and its bin (pick_place), the two blocks (stack), the drawer's handle
 (drawer_open, drawer_close, drawer_put). Render each family into the same directory, one command each.
+A long task's later grasps have views of their own (--stage; datagen/views_stages.py): drawer_put's object,
+with the drawer open, and its handle again, with the object in the open drawer.
 
 The labels' offsets (where an episode closes and opens the gripper, relative to the object and the bin, the
 blocks, the handle) are measured on recorded episodes of the family (--offsets-from). Shards of 50 scenes land
@@ -24,9 +26,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                "--holdout-color purple\n  sudd views --out out/views_carry --scenes 2000 --views 1 --carry-views 4 "
                "--seed-offset 203000 --offsets-from out/data --holdout-color purple\n"
                "  sudd views --task drawer_open --out out/views --scenes 600 --seed-offset 210000 "
-               "--offsets-from out/data_do --holdout-color purple")
+               "--offsets-from out/data_do --holdout-color purple\n"
+               "  sudd views --task drawer_put --stage object --out out/views --scenes 600 --seed-offset 212000 "
+               "--offsets-from out/data_dput --holdout-color purple")
     v.add_argument("--task", default="pick_place",
                    help="task family: pick_place (default), stack, drawer_open, drawer_close or drawer_put")
+    v.add_argument("--stage", default="", metavar="STAGE",
+                   help="a long task's later grasp to render the way to: drawer_put's object (the drawer open) or "
+                        "close (the object in the open drawer, the handle again); default the first grasp")
     v.add_argument("--out", type=Path, required=True, help="views directory (created; resumed if present)")
     v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
     v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
@@ -48,6 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _views(args) -> int:
     from datagen.view_anchors import FAMILIES, check_carries
     from datagen.views import generate, measure_offsets
+    from datagen.views_stages import label_key
     from sim.config import load_config
     from sim.tasks import Holdout
 
@@ -62,10 +70,11 @@ def _views(args) -> int:
             check_carries(args.task)
         except ValueError as exc:
             raise ValueError(f"--carry-views: {exc}; leave it out") from None
-    offsets = measure_offsets(args.offsets_from, args.task)
+    key = label_key(args.task, args.stage)
+    offsets = measure_offsets(args.offsets_from, key)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
-                      holdout, carry=args.carry_views, task=args.task)
-    summary = {"out": str(args.out), "task": args.task, "shards": len(shards), "scenes": args.scenes,
+                      holdout, carry=args.carry_views, task=args.task, stage=args.stage)
+    summary = {"out": str(args.out), "task": args.task, "stage": key, "shards": len(shards), "scenes": args.scenes,
                "views_per_scene": args.views,
                "carry_views_per_scene": args.carry_views,
                "offsets_m": {k: [round(float(x), 4) for x in offsets[k]] for k in ("grasp", "release")},
