@@ -31,7 +31,7 @@ from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_per_step
 from datagen.view_anchors import FAMILIES, check_carries
 from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
-from datagen.views_stages import label_key, parse_key, set_stage, stage_anchors, stages, start_pose
+from datagen.views_stages import label_key, parse_key, set_stage, stage_anchors, stage_index, stages, start_pose
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
@@ -106,8 +106,7 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     that grasp, the views on the way there from the last release; `offsets` are that stage's."""
     if carry:
         check_carries(task)
-    key = label_key(task, stage)
-    index = parse_key(key)[1]
+    index = stage_index(task, stage)
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5, index] if index else [int(seed), 0x71E5])

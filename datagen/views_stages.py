@@ -22,7 +22,7 @@ from datagen.articulated import OPEN_TARGET
 from datagen.view_anchors import HANDLE, Anchors, anchors
 from datagen.views_carry import free_qpos
 from sim.state import StateView
-from sim.tasks.drawer import CABINET, SLIDE
+from sim.tasks.drawer import CABINET, SLIDE, set_drawer
 from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 STAGES = {"drawer_put": ("handle", "object", "close")}  # a long task's grasps, in the collector's order
@@ -48,16 +48,13 @@ def label_key(task: str, stage: str = "") -> str:
 def parse_key(key: str) -> tuple[str, int]:
     """A label key -> (family, index of its stage: which of the episode's grasp cycles it labels)."""
     task, _, stage = key.partition("/")
-    label_key(task, stage)  # refuses an unknown stage
-    return task, stages(task).index(stage) if stage else 0
+    return task, stage_index(task, stage)
 
 
-def _drawer_slide_to(world, fraction: float) -> float:
-    state = StateView(world)
-    lo, hi = state.joint_range(SLIDE)
-    world.data.qpos[world.model.jnt_qposadr[world.model.joint(SLIDE).id]] = lo + fraction * (hi - lo)
-    world.forward()
-    return fraction
+def stage_index(task: str, stage: str = "") -> int:
+    """Which of the family's grasp cycles `stage` is (0 for the first, or none named); refuses an unknown one."""
+    label_key(task, stage)
+    return stages(task).index(stage) if stage else 0
 
 
 def drop_point(ep) -> np.ndarray:
@@ -72,7 +69,8 @@ def set_stage(ep, stage: int) -> None:
     if stage == 0:
         return
     world = ep.world
-    _drawer_slide_to(world, OPEN_TARGET)
+    lo, hi = StateView(world).joint_range(SLIDE)
+    set_drawer(world, lo + OPEN_TARGET * (hi - lo))
     if stage == 2:
         name = ep.instance.params["target"]
         free = free_qpos(world, name)
