@@ -39,6 +39,7 @@ from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORT
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.schedule import schedule_steps, step_function
+from policy.stage import with_stage
 
 _DTYPES = {"tensor(float)": "float32", "tensor(uint8)": "uint8", "tensor(int64)": "int64"}
 
@@ -144,6 +145,7 @@ class Bundle:
         self.cameras, self.image_size = list(m["cameras"]), tuple(m["image_size"])
         self.obs_horizon, self.pred_horizon, self.action_horizon = h["obs"], h["pred"], h["action"]
         self.proprio_dim, self.action_dim = m["dims"]["proprio"], m["dims"]["action"]
+        self.stage_bins = int(m["dims"].get("stage_bins", 0))  # bundles before policy.stage read none
         self.execute = slice(h["execute_from"], h["execute_from"] + h["action"])
         self.instructions, self.tasks = list(m.get("instructions", [])), list(m.get("tasks", []))
         layout = m.get("action_layout", {})
@@ -262,13 +264,15 @@ class Bundle:
         return self.instructions[k], float(cos[k])
 
     def act(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
-            noise: np.ndarray | None = None, rng: np.random.Generator | None = None, trace: list | None = None
-            ) -> np.ndarray:
+            noise: np.ndarray | None = None, rng: np.random.Generator | None = None, trace: list | None = None,
+            stage: int = 0) -> np.ndarray:
         """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
 
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
         (instruction_dim,) from `embed`; noise: the initial (Tp, Da) sample, used as given (else drawn from `rng`, N(0, noise_scale^2 I)).
         `trace`, if a list, receives cond then (x_t, t, predicted noise) per step (for parity checks).
+        stage: grasp cycles completed since the command started (policy.stage.GraspCycles over the measured
+        gripper closure), read by a bundle with dims.stage_bins > 0 and ignored by others.
         """
         To, (H, W) = self.obs_horizon, self.image_size
         feeds = {}
@@ -284,7 +288,8 @@ class Bundle:
         e = np.asarray(text_embedding, np.float32).reshape(-1)
         if e.shape != (self.instruction_dim,) or not np.all(np.isfinite(e)):
             raise ValueError(f"text_embedding: expected finite ({self.instruction_dim},) (Bundle.embed), got {e.shape}")
-        feeds["proprio"] = (p * self.stats["proprio_scale"] + self.stats["proprio_offset"])[None].astype(np.float32)
+        normalized = p * self.stats["proprio_scale"] + self.stats["proprio_offset"]
+        feeds["proprio"] = with_stage(normalized, stage, self.stage_bins)[None].astype(np.float32)
         feeds["text_embedding"] = e[None]
         cond = self.sessions["obs_encoder"].run(None, feeds)[0]
         if noise is None:

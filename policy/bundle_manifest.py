@@ -30,7 +30,7 @@ def instruction_dim(m: dict) -> int:
 def expected_graphs(m: dict) -> dict:
     """The graph I/O that the manifest's own horizons, dims, cameras and image size imply."""
     To, Tp = m["horizons"]["obs"], m["horizons"]["pred"]
-    Dp, Da, G = m["dims"]["proprio"], m["dims"]["action"], m["dims"]["cond"]
+    Dp, Da, G = m["dims"]["proprio"] + m["dims"].get("stage_bins", 0), m["dims"]["action"], m["dims"]["cond"]
     H, W = m["image_size"]
     io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
     return {
@@ -62,7 +62,7 @@ def check_manifest(m: dict) -> None:
           f"(flow matching); it has {[k for k in ('ddim', 'euler') if k in m] or 'neither'}")
     h, d = m["horizons"], m["dims"]
     ints = [h.get("obs"), h.get("pred"), h.get("action"), h.get("execute_from"), d.get("proprio"), d.get("action"),
-            d.get("cond"), *m["image_size"]]
+            d.get("cond"), d.get("stage_bins", 0), *m["image_size"]]
     need(all(isinstance(v, int) and v >= 0 for v in ints), f"horizons/dims/image_size must be integers: {ints}")
     need(0 < h["action"] and h["execute_from"] + h["action"] <= h["pred"] and h["execute_from"] < h["obs"],
           f"inconsistent horizons {h}")

@@ -64,6 +64,10 @@ class PolicyConfig:
     # The instruction as [sentence embedding, goal clause embedding] (policy.instruction): MiniLM's mean pooling
     # leaves "stack A on B" and "stack B on A" 0.997 alike; the goal clause ("on the B") says which is which.
     text_goal: bool = False
+    stage_bins: int = field(default=0, metadata=spec(0, 8, doc=(
+        "grasp cycles completed so far (policy/stage.py: the gripper held something and let it go), read "
+        "with the proprio as a one-hot of this many classes (the last: that many or more), so a multi-grasp "
+        "task (drawer_put: handle, object, handle) knows which grasp comes next; 0 = not read")))
     proprio_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     text_feature_dim: int = field(default=64, metadata=spec(1, 2048))
     # denoiser
@@ -216,6 +220,11 @@ class PolicyConfig:
         with aux_condition, the aux head's aux_dim outputs."""
         per_step = len(self.cameras) * self.image_feature_dim + self.proprio_feature_dim
         return self.obs_horizon * per_step + self.text_feature_dim + (self.aux_dim if self.aux_condition else 0)
+
+    @property
+    def proprio_input_dim(self) -> int:
+        """What the proprio encoder reads per step: the normalized proprio, then with stage_bins the stage's one-hot."""
+        return self.proprio_dim + self.stage_bins
 
     @property
     def text_input_dim(self) -> int:

@@ -51,6 +51,7 @@ from policy.config import AUX_TCP_SCALE, PolicyConfig  # noqa: F401 (AUX_TCP_SCA
 from policy.grasp_axis import axis_label, episode_target_has_axis, yaw_of
 from policy.instruction import embed_instructions
 from policy.normalize import Normalizer
+from policy.stage import GRIPPER_COLUMN, commands_in_effect, cycles_per_step, with_stage
 
 
 def available_memory() -> float:
@@ -194,6 +195,9 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
         self.gripper_levels = gripper_levels([a["action"][:, -1] for a in low])
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
+        # per step: grasp cycles completed so far, from the measured gripper closure (policy.stage)
+        self.stage = ([cycles_per_step(commands_in_effect(a["action"]), a["proprio"][:, GRIPPER_COLUMN]) for a in low]
+                      if cfg.stage_bins else None)
         # per step: the grasp it heads for and the release that grasp leads to (past injected failures)
         self.cycle = [grasp_and_release_per_step(a["action"], a["subtask"]) for a in low]
         self.grasp_step = [int(c[0, 0]) for c in self.cycle]
@@ -277,7 +281,10 @@ class PolicyDataset(torch.utils.data.Dataset):
         action = self.action[k][act]
         if cfg.action_frame == "tcp":
             action = self.normalizer.normalize_action(to_tcp(action, self.tcp_pose[k][now]))
-        out = {"proprio": torch.from_numpy(self.proprio[k][obs]), "aux": self.aux_target(index),
+        proprio = self.proprio[k][obs]
+        if cfg.stage_bins:
+            proprio = with_stage(proprio, int(self.stage[k][now]), cfg.stage_bins)
+        out = {"proprio": torch.from_numpy(proprio), "aux": self.aux_target(index),
                "action": torch.from_numpy(action), "text": self.text_table[self.text_row[text]]}
         if not self.read_images:  # copy c of frame f is row c * num_frames + f; copy 0 is the unaugmented one
             copy = int(rng.integers(0, max(1, cfg.feature_cache))) if self.train else 0

@@ -7,7 +7,8 @@ Bundle layout (format "sudd-policy-bundle", version 1):
     manifest.json        format/version, opset, graph I/O (names, shapes, dtypes), horizons, dims, cameras and
                          image/crop size, tasks + known instructions, data content hash, config, DDIM schedule,
                          parameter counts, file sizes + sha256, weight storage, text-encoder and parity figures
-    obs_encoder.onnx     image_<camera> uint8 (B,To,H,W,3) full frames, proprio (B,To,Dp) normalized,
+    obs_encoder.onnx     image_<camera> uint8 (B,To,H,W,3) full frames, proprio (B,To,Dp) normalized (Dp: the
+                         recorded proprio, then dims.stage_bins one-hot grasp-cycle classes, policy.stage),
                          text_embedding (B,I) -> cond (B,G); the centre crop and /255 are inside the graph;
                          I = 384, or 768 with "instruction": {"goal_clause": true} (policy.instruction)
     denoiser.onnx        noisy_actions (B,Tp,Da), timestep (B,) int64, cond (B,G) -> noise_pred (B,Tp,Da)
@@ -103,7 +104,7 @@ def _io(name: str, shape: list, dtype: str) -> dict:
 
 def graph_specs(cfg: PolicyConfig) -> dict:
     """The I/O contract of every graph, as written to the manifest and checked by the loader."""
-    To, Tp, Da, Dp, G = cfg.obs_horizon, cfg.pred_horizon, cfg.action_dim, cfg.proprio_dim, film_dim(cfg)
+    To, Tp, Da, Dp, G = cfg.obs_horizon, cfg.pred_horizon, cfg.action_dim, cfg.proprio_input_dim, film_dim(cfg)
     H, W = cfg.image_size
     return {
         "obs_encoder": {"file": "obs_encoder.onnx",
@@ -154,7 +155,7 @@ def write_policy_graphs(model: DiffusionPolicy, out_dir: Path, opset: int = OPSE
     H, W = cfg.image_size
     ex_imgs = [torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
                for _ in cfg.cameras]
-    ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_dim), torch.randn(1, cfg.text_input_dim)
+    ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_input_dim), torch.randn(1, cfg.text_input_dim)
     so, sd = specs["obs_encoder"], specs["denoiser"]
     info = {"obs_encoder": _write_graph(_ObsGraph(model), (*ex_imgs, ex_p, ex_t), out_dir / so["file"], so, opset,
                                         fp16)}
@@ -255,7 +256,8 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "horizons": {"obs": cfg.obs_horizon, "pred": cfg.pred_horizon, "action": cfg.action_horizon,
                          "execute_from": cfg.obs_horizon - 1, "control_hz": 10.0},
             "dims": {"proprio": cfg.proprio_dim, "action": cfg.action_dim, "text": TEXT_DIM,
-                     "instruction": cfg.text_input_dim, "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim},
+                     "instruction": cfg.text_input_dim, "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim,
+                     "stage_bins": cfg.stage_bins},
             "instruction": {"goal_clause": cfg.text_goal},
             "action_layout": {"position": [0, 3], "rot6d": [3, 9], "gripper": [9, 10], "frame": cfg.action_frame},
             "cameras": list(cfg.cameras), "image_size": list(cfg.image_size), "crop_size": list(cfg.crop_size),

@@ -3,7 +3,8 @@
 Shapes (B batch, To obs horizon, Tp prediction horizon, Da action dim, Dp proprio dim, G global cond dim):
 
     ImageEncoder     (N, 3, h, w) float in [0, 1]                          -> (N, image_feature_dim)
-    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, Dp) normalized, text (B, cfg.text_input_dim) -> (B, G)
+    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, cfg.proprio_input_dim) normalized (then any
+                     stage one-hot, policy.stage), text (B, cfg.text_input_dim) -> (B, G)
     ConditionalUnet1D  noisy actions (B, Tp, Da), timestep (B,) int64, cond (B, G)  -> predicted noise (B, Tp, Da)
                      (= .denoise(noisy, timestep, .condition(cond)), with .condition(cond) -> (B, F) FiLM part)
     DiffusionPolicy  .encode(...) -> (B, G); .forward(noisy, t, cond) -> (B, Tp, Da); .loss(...) -> scalar
@@ -129,7 +130,7 @@ class ObsEncoder(nn.Module):
                                                      cfg.image_feature_dim, cfg.text_input_dim if cfg.text_film else 0,
                                                      cfg.encoder_strides)
                                      for c in self.cameras})
-        self.proprio = nn.Sequential(nn.Linear(cfg.proprio_dim, cfg.proprio_feature_dim), nn.Mish(),
+        self.proprio = nn.Sequential(nn.Linear(cfg.proprio_input_dim, cfg.proprio_feature_dim), nn.Mish(),
                                      nn.Linear(cfg.proprio_feature_dim, cfg.proprio_feature_dim))
         self.text = nn.Sequential(nn.Linear(cfg.text_input_dim, cfg.text_feature_dim), nn.Mish(),
                                   nn.Linear(cfg.text_feature_dim, cfg.text_feature_dim))

@@ -84,19 +84,20 @@ class OracleAuxPolicy:
 
         return embed_instructions(self._embedder, [text], self.model.cfg.text_goal)[0]
 
-    def cond(self, images: dict, proprio: np.ndarray, text_embedding: np.ndarray):
+    def cond(self, images: dict, proprio: np.ndarray, text_embedding: np.ndarray, stage: int = 0):
         """The denoiser's global cond (1, G) with the aux head's points (those `true_points` names) replaced by
         the true ones (a grasp axis after them stays the head's)."""
         import torch
 
         from policy.data import relative_to_tcp
         from policy.model import prepare_images
+        from policy.stage import with_stage
 
         cfg = self.model.cfg
         with torch.no_grad():
             imgs = {c: prepare_images(torch.from_numpy(np.asarray(images[c]))[None], cfg.crop_size)
                     for c in cfg.cameras}
-            p = torch.from_numpy(self.normalizer.normalize_proprio(proprio))[None]
+            p = torch.from_numpy(with_stage(self.normalizer.normalize_proprio(proprio), stage, cfg.stage_bins))[None]
             cond = self.model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
         start = cond.shape[1] - cfg.aux_dim
         true = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
@@ -104,7 +105,7 @@ class OracleAuxPolicy:
             cond[0, start + 3 * k:start + 3 * k + 3] = true[3 * k:3 * k + 3]
         return cond
 
-    def act(self, images, proprio, text_embedding, noise=None, rng=None) -> np.ndarray:
+    def act(self, images, proprio, text_embedding, noise=None, rng=None, stage: int = 0) -> np.ndarray:
         import torch
 
         from policy.action_frame import from_tcp, orthonormalize_rot6d
@@ -112,7 +113,7 @@ class OracleAuxPolicy:
 
         if noise is None:
             noise = (rng or np.random.default_rng()).standard_normal((self.pred_horizon, self.action_dim))
-        cond = self.cond(images, proprio, text_embedding)
+        cond = self.cond(images, proprio, text_embedding, stage)
         x = sample(self.model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None], self.schedule)
         a = orthonormalize_rot6d(self.normalizer.unnormalize_action(x[0].numpy()))
         return from_tcp(a, np.asarray(proprio)[-1, :9])

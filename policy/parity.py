@@ -21,6 +21,7 @@ import torch
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
 from policy.sampling import predict_chunk, sample
+from policy.stage import with_stage
 
 STEP_TOL, CHUNK_TOL = 1e-4, 1e-3
 
@@ -30,7 +31,8 @@ class ExportError(RuntimeError):
 
 
 def _random_observations(cfg, normalizer: Normalizer, trials: int, seed: int):
-    """(images, raw proprio, unit text embedding, noise) per trial, inside the normalizer's proprio range."""
+    """(images, raw proprio, unit text embedding, noise, grasp cycles) per trial, inside the normalizer's proprio
+    range; the cycles 0 .. stage_bins (past the last class too) when the policy reads them, else 0."""
     rng = np.random.default_rng(seed)
     H, W = cfg.image_size
     for _ in range(trials):
@@ -39,12 +41,15 @@ def _random_observations(cfg, normalizer: Normalizer, trials: int, seed: int):
         proprio = (lo + (hi - lo) * rng.random((cfg.obs_horizon, cfg.proprio_dim))).astype(np.float32)
         text = rng.normal(size=cfg.text_input_dim).astype(np.float32)
         text /= np.linalg.norm(text)
-        yield images, proprio, text, rng.normal(size=(cfg.pred_horizon, cfg.action_dim)).astype(np.float32)
+        noise = rng.normal(size=(cfg.pred_horizon, cfg.action_dim)).astype(np.float32)
+        yield images, proprio, text, noise, int(rng.integers(0, cfg.stage_bins + 1)) if cfg.stage_bins else 0
 
 
-def _encode(model: DiffusionPolicy, normalizer: Normalizer, images: dict, proprio: np.ndarray, text: np.ndarray):
+def _encode(model: DiffusionPolicy, normalizer: Normalizer, images: dict, proprio: np.ndarray, text: np.ndarray,
+            stage: int):
     imgs = {c: prepare_images(torch.from_numpy(images[c])[None], model.cfg.crop_size) for c in model.cfg.cameras}
-    return model.encode(imgs, torch.from_numpy(normalizer.normalize_proprio(proprio))[None], torch.from_numpy(text)[None])
+    p = with_stage(normalizer.normalize_proprio(proprio), stage, model.cfg.stage_bins)
+    return model.encode(imgs, torch.from_numpy(p)[None], torch.from_numpy(text)[None])
 
 
 @torch.no_grad()
@@ -52,8 +57,8 @@ def rounding_cost(fp32: DiffusionPolicy, rounded: DiffusionPolicy, normalizer: N
                   seed: int = 1) -> dict:
     """Max |chunk(rounded) - chunk(fp32)|, normalized and (position, columns 0:3) in metres; same inputs."""
     worst, pos = 0.0, 0.0
-    for images, proprio, text, noise in _random_observations(fp32.cfg, normalizer, trials, seed):
-        x = [sample(m, _encode(m, normalizer, images, proprio, text), torch.from_numpy(noise)[None])[0].numpy()
+    for images, proprio, text, noise, stage in _random_observations(fp32.cfg, normalizer, trials, seed):
+        x = [sample(m, _encode(m, normalizer, images, proprio, text, stage), torch.from_numpy(noise)[None])[0].numpy()
              for m in (fp32, rounded)]
         worst = max(worst, float(np.abs(x[0] - x[1]).max()))
         a = [normalizer.unnormalize_action(v) for v in x]
@@ -69,15 +74,15 @@ def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str
 
     b = Bundle.load(bundle_dir, warmup=False)
     worst = {"cond_max_abs_err": 0.0, "step_max_abs_err": 0.0, "chunk_max_abs_err": 0.0}
-    for images, proprio, text, noise in _random_observations(model.cfg, normalizer, trials, seed):
+    for images, proprio, text, noise, stage in _random_observations(model.cfg, normalizer, trials, seed):
         trace: list = []
-        chunk = b.act(images, proprio, text, noise=noise, trace=trace)
-        cond = model.unet.condition(_encode(model, normalizer, images, proprio, text))
+        chunk = b.act(images, proprio, text, noise=noise, trace=trace, stage=stage)
+        cond = model.unet.condition(_encode(model, normalizer, images, proprio, text, stage))
         worst["cond_max_abs_err"] = max(worst["cond_max_abs_err"], float(np.abs(cond.numpy() - trace[0]).max()))
         for x, t, eps in trace[1:]:
             ref = model.unet.denoise(torch.from_numpy(x), torch.tensor([t]), torch.from_numpy(trace[0]))
             worst["step_max_abs_err"] = max(worst["step_max_abs_err"], float(np.abs(ref.numpy() - eps).max()))
-        ref_chunk = predict_chunk(model, normalizer, images, proprio, text, noise)
+        ref_chunk = predict_chunk(model, normalizer, images, proprio, text, noise, stage)
         worst["chunk_max_abs_err"] = max(worst["chunk_max_abs_err"], float(np.abs(ref_chunk - chunk).max()))
     worst.update(trials=trials, step_tol=STEP_TOL, chunk_tol=CHUNK_TOL)
     if worst["step_max_abs_err"] > STEP_TOL or worst["cond_max_abs_err"] > STEP_TOL or worst["chunk_max_abs_err"] > CHUNK_TOL:

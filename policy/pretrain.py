@@ -163,6 +163,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     if cfg.aux_target_weight <= 0 or cfg.aux_target_frame != "tcp":
         raise ValueError("pretraining trains the aux head: it needs aux_target_weight > 0 and "
                          f"aux_target_frame 'tcp' (got {cfg.aux_target_weight}, {cfg.aux_target_frame!r})")
+    if cfg.stage_bins:
+        raise ValueError(f"stage_bins {cfg.stage_bins}: pretraining trains the encoders and head, which do not read "
+                         "the grasp cycles; pretrain with stage_bins 0 and set it in `sudd train --init-from` (the "
+                         "proprio encoder grows zero columns for it)")
     if not 0.0 <= episode_share < 1.0:
         raise ValueError(f"episode_share {episode_share}: expected a share of the batch in [0, 1) (the views fill "
                          "the rest; 0 = views only)")

@@ -16,6 +16,7 @@ from policy.action_frame import from_tcp, orthonormalize_rot6d
 from policy.model import DiffusionPolicy, prepare_images
 from policy.normalize import Normalizer
 from policy.schedule import ddim_schedule, flow_schedule, schedule_steps, step_function
+from policy.stage import with_stage
 
 
 def schedule_for(model: DiffusionPolicy, steps: int | None = None) -> dict:
@@ -47,15 +48,16 @@ def sample(model: DiffusionPolicy, cond: torch.Tensor, noise: torch.Tensor, sche
 
 @torch.no_grad()
 def predict_chunk(model: DiffusionPolicy, normalizer: Normalizer, images: dict[str, np.ndarray],
-                  proprio: np.ndarray, text_embedding: np.ndarray, noise: np.ndarray) -> np.ndarray:
+                  proprio: np.ndarray, text_embedding: np.ndarray, noise: np.ndarray, stage: int = 0) -> np.ndarray:
     """One observation (no batch axis) -> (Tp, Da) absolute actions.
 
-    images: camera -> (To, H, W, 3) uint8; proprio (To, Dp) raw; text_embedding (cfg.text_input_dim,); noise (Tp, Da).
+    images: camera -> (To, H, W, 3) uint8; proprio (To, Dp) raw; text_embedding (cfg.text_input_dim,); noise (Tp, Da);
+    stage: grasp cycles completed so far (policy.stage; read only with cfg.stage_bins).
     """
     model.eval()
     imgs = {c: prepare_images(torch.from_numpy(np.asarray(images[c]))[None], model.cfg.crop_size)
             for c in model.cfg.cameras}
-    p = torch.from_numpy(normalizer.normalize_proprio(proprio))[None]
+    p = torch.from_numpy(with_stage(normalizer.normalize_proprio(proprio), stage, model.cfg.stage_bins))[None]
     cond = model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
     x = sample(model, cond, torch.from_numpy(np.asarray(noise, np.float32))[None])
     a = orthonormalize_rot6d(normalizer.unnormalize_action(x[0].numpy()))

@@ -85,6 +85,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
     of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos)."""
     from datagen.recorder import Recorder
+    from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
     from sim.twins.rig import SimRig
 
@@ -110,6 +111,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target)
     events: Counter = Counter()
     progress = GraspProgress()
+    cycles = GraspCycles()  # grasp cycles since the start, as the policy node counts them
     try:
         rec.start()
         loop.cycle()  # the controller's first cycle: it now knows the arm's state
@@ -133,7 +135,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             if tick % replan_every == 0:
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
-                actions = bundle.act(images, proprio, emb, rng=rng)[bundle.execute]
+                stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
+                actions = bundle.act(images, proprio, emb, rng=rng, stage=stage)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s

@@ -29,13 +29,14 @@ class Replay:
     manifest = {"horizons": {"control_hz": 10.0}}
 
     def __init__(self, actions: np.ndarray):
-        self.actions, self.k, self.seen = np.asarray(actions, np.float32), 0, []
+        self.actions, self.k, self.seen, self.stages = np.asarray(actions, np.float32), 0, [], []
 
     def embed(self, text: str) -> np.ndarray:
         return np.zeros(384, np.float32)
 
-    def act(self, images, proprio, emb, rng=None) -> np.ndarray:
+    def act(self, images, proprio, emb, rng=None, stage=0) -> np.ndarray:
         self.seen.append((images["scene"].shape, images["wrist"].shape, proprio.shape))
+        self.stages.append(stage)
         idx = np.clip(np.arange(self.k - 1, self.k + 15), 0, len(self.actions) - 1)
         self.k += 1
         return self.actions[idx]
@@ -57,6 +58,8 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert out.rejected_chunks == 0 and out.chunks == policy.k > 20
     assert out.sim_seconds < len(collected.action) / 10.0 + 2.0
     assert policy.seen[0] == ((2, 128, 128, 3), (2, 128, 128, 3), (2, 16))
+    # the grasp cycles the policy is given (policy.stage): none until the object is let go in the bin
+    assert policy.stages[0] == 0 and policy.stages[-1] == 1 and policy.stages == sorted(policy.stages)
     assert out.target["color"] and out.target["shape"]
     assert out.held == [f"{out.target['color']} {out.target['shape']}"] and out.failure == ""
     assert out.target_end == "" and out.target_lets_go == 1  # let go once: in its bin
@@ -116,11 +119,11 @@ def test_a_drawer_task_reports_how_far_the_drawer_opened():
 class SlowReplay(Replay):
     """Replay whose inference takes a different wall time on every call (0-12 ms, as a loaded CPU does)."""
 
-    def act(self, images, proprio, emb, rng=None) -> np.ndarray:
+    def act(self, images, proprio, emb, rng=None, stage=0) -> np.ndarray:
         import time
 
         time.sleep(float(np.random.default_rng().uniform(0.0, 0.012)))
-        return super().act(images, proprio, emb, rng)
+        return super().act(images, proprio, emb, rng, stage)
 
 
 def _tcp_trace(collected, **kw) -> np.ndarray:

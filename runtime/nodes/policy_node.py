@@ -15,9 +15,11 @@ control_hz, 10 Hz; divided by `replan_every`) times a second, on the monotonic c
    `max_state_age_s`) => no chunk and one StatusEvent "policy_stale_input" (on the transition; "policy_resumed"
    when inputs are back). Without chunks the controller's plan runs out and its watchdog holds the arm.
 3. No accepted command => no chunk (idle).
-4. bundle.act -> the executed slice (bundle.execute) -> ActionChunk with times t_obs + (j + 1) / hz (the
-   recorded action at step t is the target of step t + 1), obs_time_ns = t_obs. Aligning to the capture time
-   (not the publish time) lets the controller drop what is already past and compensate its own latency.
+4. bundle.act (and the grasp cycles since the command was accepted, policy.stage, from the gripper's
+   request and position at the newest step) -> the executed slice (bundle.execute) -> ActionChunk with
+   times t_obs + (j + 1) / hz (the recorded action at step t is the target of step t + 1), obs_time_ns =
+   t_obs. Aligning to the capture time (not the publish time) lets the controller drop what is already past
+   and compensate its own latency.
 
 Language: a LanguageCommand is compared with every trained instruction (bundle.task_similarity, MiniLM
 cosine). Below `similarity_threshold` it is REFUSED: a StatusEvent "command_refused" names the closest
@@ -129,6 +131,7 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
+    from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime import messages as m
 
@@ -170,11 +173,12 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         for c in bundle.cameras:
             bus.subscribe(B.camera_color(c), lambda msg, c=c: on_frame(msg, c))
         bus.subscribe(B.ARM_STATE, lambda msg: states.add(msg.timestamp_ns, msg))
-        bus.subscribe(B.GRIPPER_STATE, lambda msg: grips.add(msg.timestamp_ns, float(msg.position)))
+        bus.subscribe(B.GRIPPER_STATE, lambda msg: grips.add(msg.timestamp_ns, (float(msg.position), float(msg.target))))
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
         current: dict = {"text": None, "emb": None}
+        cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
                    "tasks": bundle.tasks, "instructions": len(bundle.instructions)})
@@ -193,6 +197,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                 if ok:
                     report["accepted"] += 1
                     current.update(text=text, emb=bundle.embed(text))
+                    cycles.reset()  # a new task starts at its first grasp
                     event("command_accepted", "info", f"{tag}accepted '{text}' (closest trained instruction "
                                                       f"'{best}', cosine {cos:.2f})", cosine=cos)
                 else:
@@ -236,9 +241,11 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     for t in times:
                         _, s = states.nearest(t)
                         _, g = grips.nearest(t)
-                        prop.append(proprio_of(s, 0.0 if g is None else g))
+                        prop.append(proprio_of(s, 0.0 if g is None else g[0]))
                     t0 = time.perf_counter()
-                    a = bundle.act(imgs, np.asarray(prop, np.float32), current["emb"], rng=rng)[bundle.execute]
+                    stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
+                    a = bundle.act(imgs, np.asarray(prop, np.float32), current["emb"], rng=rng,
+                                   stage=stage)[bundle.execute]
                     infer_ms.append((time.perf_counter() - t0) * 1e3)
                     tk = (t_obs + dt_ns * (1 + np.arange(len(a)))).astype(np.int64)
                     pub_chunk.publish(m.ActionChunk(actions=a.astype(np.float64), times_ns=tk, obs_time_ns=int(t_obs)))
