@@ -9,12 +9,12 @@ alike on the real gripper and in sim, and costs no perception.
 A cycle is a hold followed by a release: the gripper is commanded closed (target >= CLOSED), the fingers stop
 short of closing fully (measured closure < AIR: they were stopped by something; closing on nothing reaches
 ~1 and is a missed grasp, which the collector retries without moving on), and the command opens again (the
-collector's half-open pre-shape for the handle, 0.5, is not a close). Measured on 400 collector drawer_put
-episodes: 0 cycles while opening the drawer, 1 while taking the object to it, 2 while closing it, in three of
-four; the rest count a re-grasp of a slipping handle too. Both inputs are what a 2F-85 reports (its position
-request and position), in sim and on the robot. The count at an observation is the cycles completed up to and
-including its newest step; the policy reads it as a one-hot of `bins` classes, the last one meaning
-"bins - 1 or more".
+collector's half-open pre-shape for the handle, 0.5, is not a close). On the 391 verified collector drawer_put
+episodes of out/data_ft: 0 cycles while opening the drawer, 1 while taking the object to it, 2 while closing
+it, in 338 (86 %); the rest also count a re-grasp of a slipping handle or object. Both inputs are what a
+2F-85 reports (its position request and position), in sim and on the robot. The count at an observation is
+the cycles completed up to and including its newest step; the policy reads it as a one-hot of `bins`
+classes, the last one meaning "bins - 1 or more".
 
 Torch-free (numpy only): the runtime's policy node and the evaluation count the same way as the training data.
 """
