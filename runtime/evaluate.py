@@ -68,6 +68,7 @@ class EpisodeOutcome:
     releases: list[dict] = field(default_factory=list)  # where it was at each let-go, off the goal (eval_progress)
     drawer_max: float | None = None  # the drawer's largest open fraction, 0-1 (None: no drawer; eval_progress)
     drawer_end: float | None = None  # and at the end
+    grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -153,6 +154,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 events[e.kind] += 1
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
+        out.grasp_cycles = cycles.count
         if not out.success:
             out.target_end = progress.target_end(inst)
         out.target_lets_go = progress.target_lets_go

@@ -60,6 +60,7 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert policy.seen[0] == ((2, 128, 128, 3), (2, 128, 128, 3), (2, 16))
     # the grasp cycles the policy is given (policy.stage): none until the object is let go in the bin
     assert policy.stages[0] == 0 and policy.stages[-1] == 1 and policy.stages == sorted(policy.stages)
+    assert out.grasp_cycles == 1
     assert out.target["color"] and out.target["shape"]
     assert out.held == [f"{out.target['color']} {out.target['shape']}"] and out.failure == ""
     assert out.target_end == "" and out.target_lets_go == 1  # let go once: in its bin
