@@ -271,8 +271,8 @@ class Bundle:
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
         (instruction_dim,) from `embed`; noise: the initial (Tp, Da) sample, used as given (else drawn from `rng`, N(0, noise_scale^2 I)).
         `trace`, if a list, receives cond then (x_t, t, predicted noise) per step (for parity checks).
-        stage: grasp cycles completed since the command started (policy.stage.GraspCycles over the measured
-        gripper closure), read by a bundle with dims.stage_bins > 0 and ignored by others.
+        stage: grasp cycles completed since the command started (policy.stage.GraspCycles over the gripper's
+        position request and measured position), read by a bundle with dims.stage_bins > 0, ignored by others.
         """
         To, (H, W) = self.obs_horizon, self.image_size
         feeds = {}
@@ -315,5 +315,6 @@ class Bundle:
         m = self.manifest
         return {"path": str(self.root), "format_version": m["format_version"], "opset": m["opset"],
                 "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
-                "instructions": len(self.instructions), "data_hash": m.get("data", {}).get("content_hash"),
-                "params": m.get("params"), "bytes": {k: v["bytes"] for k, v in m["files"].items()}}
+                "instructions": len(self.instructions), "stage_bins": self.stage_bins,
+                "data_hash": m.get("data", {}).get("content_hash"), "params": m.get("params"),
+                "bytes": {k: v["bytes"] for k, v in m["files"].items()}}

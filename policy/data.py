@@ -195,7 +195,7 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.tcp_pose = [a["proprio"][:, :9].astype(np.float64) for a in low]
         self.gripper_levels = gripper_levels([a["action"][:, -1] for a in low])
         self.subtask = [a["subtask"].astype(np.int64) for a in low]
-        # per step: grasp cycles completed so far, from the measured gripper closure (policy.stage)
+        # per step: grasp cycles completed so far, from the gripper commands and closures (policy.stage)
         self.stage = ([cycles_per_step(commands_in_effect(a["action"]), a["proprio"][:, GRIPPER_COLUMN]) for a in low]
                       if cfg.stage_bins else None)
         # per step: the grasp it heads for and the release that grasp leads to (past injected failures)

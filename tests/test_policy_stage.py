@@ -146,6 +146,7 @@ def test_the_bundle_reads_the_stage_and_an_older_bundle_ignores_it(stage_bundle,
     proprio_in = next(i for i in m["graphs"]["obs_encoder"]["inputs"] if i["name"] == "proprio")
     assert proprio_in["shape"][-1] == 19 and m["parity"]["chunk_max_abs_err"] <= 1e-3
     b = Bundle.load(bundle_dir)
+    assert b.info()["stage_bins"] == 3
     rng = np.random.default_rng(0)
     images = {c: rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8) for c in b.cameras}
     proprio = rng.uniform(-0.1, 0.1, (2, 16)).astype(np.float32)

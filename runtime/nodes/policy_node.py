@@ -243,6 +243,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         _, g = grips.nearest(t)
                         prop.append(proprio_of(s, 0.0 if g is None else g[0]))
                     t0 = time.perf_counter()
+                    # g: the newest step's (position, request), as training counts from the recorded steps
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
                     a = bundle.act(imgs, np.asarray(prop, np.float32), current["emb"], rng=rng,
                                    stage=stage)[bundle.execute]
