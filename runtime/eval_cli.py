@@ -62,6 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="simulated inference lag per chunk, fixed (default: each inference's measured wall time, "
                          "which varies from run to run; fix it, e.g. 6, to compare bundles on exactly the same "
                          "episodes)")
+    ev.add_argument("--speed", type=float, default=1.0, metavar="F",
+                    help="pace the arm follows the policy's chunks at, a fraction of the recorded one in [0.1, 1] "
+                         "(default 1; 0.5: actions and ticks 0.2 s apart, observations as trained; see sudd run "
+                         "--speed)")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -79,11 +83,13 @@ def _eval(args) -> int:
     from policy.bundle import Bundle
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
+    from runtime.pace import check_speed
     from sim.tasks import get_task
 
     if args.latency_ms is not None and not 0.0 <= args.latency_ms < 1000.0:
         raise ValueError(f"--latency-ms {args.latency_ms}: expected 0 <= MS < 1000 (the simulated inference lag of "
                          "one chunk); leave it out to use the measured time")
+    check_speed(args.speed)
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     controller = with_bundle_levels(controller, bundle.manifest)  # recorded in summary.json as used
@@ -114,7 +120,7 @@ def _eval(args) -> int:
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
-                "latency_ms": args.latency_ms,
+                "latency_ms": args.latency_ms, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
@@ -230,7 +236,8 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
-                                 controller=_WORKER["controller"], observer=strip).record()
+                                 controller=_WORKER["controller"], observer=strip,
+                                 speed=s.get("speed", 1.0)).record()
         if strip is not None and not out["success"]:
             title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
                      f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")

@@ -36,6 +36,7 @@ import numpy as np
 
 from runtime.controller import ControllerConfig, ControllerLoop, with_bundle_levels
 from runtime.messages import ActionChunk
+from runtime.pace import action_period_ns, check_speed
 from runtime.sim_cell import cell_limits
 from safety import SafetyFilter, default_limits
 from sim.build import build_episode
@@ -80,16 +81,20 @@ class EpisodeOutcome:
 def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdout: Holdout = Holdout(),
                        command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
-                       controller: ControllerConfig | None = None, observer=None) -> EpisodeOutcome:
+                       controller: ControllerConfig | None = None, observer=None, speed: float = 1.0
+                       ) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
-    of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos)."""
+    of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos); `speed` the
+    pace the arm follows the chunks at (runtime.pace: ticks and actions 1 / (control_hz x speed) apart, the
+    observations still 1 / control_hz)."""
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
     from sim.twins.rig import SimRig
 
+    check_speed(speed)  # before anything is built
     ep = build_episode(task, seed, dr, "fast", holdout=holdout)
     family, inst = ep.task, ep.instance
     if paraphrase:
@@ -103,9 +108,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(limits)),
                           with_bundle_levels(controller or ControllerConfig(), bundle.manifest))
     rec = Recorder(ep, image_size=tuple(bundle.image_size))
-    hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
-    per_tick = max(1, round(1.0 / (hz * rig.control_period)))
-    dt_ns = int(round(1e9 / hz))
+    dt_ns = action_period_ns(float(bundle.manifest["horizons"].get("control_hz", 10.0)), speed)
+    per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
     To = bundle.obs_horizon
     budget = family.max_seconds * time_limit_factor
     target = _target_of(inst)

@@ -81,6 +81,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--replan-every", type=int, default=1, metavar="TICKS",
                      help="infer on every Nth policy tick only (1 to the bundle's action horizon; default 1): "
                           "less CPU, the same action rate (the shipped bundle: 13/60 with 4, 12/60 with 1)")
+    run.add_argument("--speed", type=float, default=1.0, metavar="F",
+                     help="pace the arm follows the policy at, a fraction of its demonstrations' in [0.1, 1] "
+                          "(default 1). 0.5 plays every chunk at half speed: the shipped bundle's drawer_close "
+                          "went from 12/20 to 20/20, its finger links no longer hitting the drawer front hard "
+                          "enough to stop the arm (policy/EXPERIMENTS.md, \"Half speed\")")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)
@@ -129,9 +134,11 @@ def _run(args) -> int:
         return 2
     bundle = resolve_bundle(args.policy)
     from policy.bundle import check_replan_every
+    from runtime.pace import check_speed
 
     manifest = bundle_manifest(bundle)
     check_replan_every(args.replan_every, int(manifest["horizons"]["action"]))
+    check_speed(args.speed)
     robot = {}
     for flag, given in (("--controller", args.controller), ("--limits", args.limits)):
         if given is not None and not (args.sim or args.robot_ip):
@@ -149,13 +156,14 @@ def _run(args) -> int:
         robot["limits_file"] = str(args.limits.resolve())
     if args.sim:
         specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr, replan_every=args.replan_every,
-                          **robot)
+                          speed=args.speed, **robot)
     elif args.robot_ip:
         serials = dict(s.split("=", 1) for s in args.camera_serial if "=" in s)
         specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion,
-                               replan_every=args.replan_every, **robot)
+                               replan_every=args.replan_every, speed=args.speed, **robot)
     else:
-        specs = policy_stack(str(bundle), command=args.command or "", replan_every=args.replan_every)
+        specs = policy_stack(str(bundle), command=args.command or "", replan_every=args.replan_every,
+                             speed=args.speed)
     specs = [s for s in specs if node_kind(s) in kinds]
     la = Launcher(specs, hub=args.hub, robot_name=args.robot, connect=args.connect)
     succeeded = {"v": False}

@@ -90,6 +90,17 @@ def test_a_failure_says_where_the_named_object_ended(collected, change, where):
     assert json.loads(json.dumps(out.record()))["target_end"] == where  # plain Python types: results.jsonl
 
 
+def test_at_half_speed_the_same_chunks_take_twice_as_long_and_still_solve_the_task(collected):
+    full, half = Replay(collected.action), Replay(collected.action)
+    fast = run_policy_episode(full, "pick_place", SEED, dr="heavy")
+    slow = run_policy_episode(half, "pick_place", SEED, dr="heavy", speed=0.5)
+    assert fast.success and slow.success, slow.record()
+    assert 1.7 < slow.sim_seconds / fast.sim_seconds < 2.3
+    assert half.seen[0] == full.seen[0]  # the observations as trained: two steps, the same images and proprio
+    with pytest.raises(ValueError, match="speed"):
+        run_policy_episode(Replay(collected.action), "pick_place", SEED, speed=0.0)
+
+
 def test_a_policy_that_holds_still_fails_at_the_time_limit(collected):
     out = run_policy_episode(Replay(collected.action[:1]), "pick_place", SEED, dr="heavy", time_limit_factor=0.05)
     assert not out.success and out.end == "timeout"

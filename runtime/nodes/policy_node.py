@@ -3,12 +3,12 @@
     python -m runtime.nodes.policy_node --config '{"bundle": "policy/bundles/multitask"}'
 
 Runs in its own process, so inference (tens of ms) never blocks the 500 Hz controller. At most hz (the bundle's
-control_hz, 10 Hz; divided by `replan_every`) times a second, on the monotonic clock:
+control_hz, 10 Hz, times `speed`; divided by `replan_every`) times a second, on the monotonic clock:
 
 1. A tick is the arrival of a new frame of the first (primary) camera, at most hz a second, so
    inference starts as soon as the observation exists (the camera rate sets the pace; with no frames the
    node still wakes every 1/hz to notice staleness). Observation time t_obs = that frame's capture time.
-   The To-step history is taken at t_obs - k / hz (k = To-1 .. 0): per camera
+   The To-step history is taken at t_obs - k / control_hz (k = To-1 .. 0), as trained: per camera
    the frame captured nearest each time, and the arm/gripper state whose timestamp is nearest (proprio:
    tcp position, rot6d, gripper, q, as datagen.schema records it).
 2. Stale inputs (a camera with no frame captured within `max_frame_age_s`, or no robot state within
@@ -58,6 +58,9 @@ class PolicyNodeConfig:
     # Infer on every Nth tick only (1..the bundle's action horizon): less CPU, the same action rate. The
     # chunk's actions stay 1/hz apart at the bundle's rate, the rate its demonstrations were recorded at.
     replan_every: int = 1
+    # The pace the arm follows the chunks at, a fraction of the recorded one (runtime.pace): ticks and actions
+    # 1 / (hz x speed) apart; the observation history stays 1 / hz apart, as in training.
+    speed: float = 1.0
 
 
 CONFIG = PolicyNodeConfig
@@ -133,15 +136,18 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
+    from runtime.pace import action_period_ns
     from runtime import messages as m
 
     if not cfg.bundle:
         raise ValueError("policy node: no bundle given")
     bundle = Bundle.load(cfg.bundle, intra_op_num_threads=cfg.threads)
     bundle.check_replan_every(cfg.replan_every)
-    hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
+    data_hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
     To, (H, W) = bundle.obs_horizon, bundle.image_size
-    dt_ns = int(round(1e9 / hz))
+    obs_dt_ns = int(round(1e9 / data_hz))  # the observation history's spacing: the training data's
+    dt_ns = action_period_ns(data_hz, cfg.speed)  # between the chunk's actions, and the node's ticks
+    hz = 1e9 / dt_ns
     rng = np.random.default_rng(cfg.seed)
     report: dict = {"chunks": 0, "ticks": 0, "stale_ticks": 0, "idle_ticks": 0, "refused": 0, "accepted": 0,
                     "errors": 0}
@@ -173,7 +179,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         for c in bundle.cameras:
             bus.subscribe(B.camera_color(c), lambda msg, c=c: on_frame(msg, c))
         bus.subscribe(B.ARM_STATE, lambda msg: states.add(msg.timestamp_ns, msg))
-        bus.subscribe(B.GRIPPER_STATE, lambda msg: grips.add(msg.timestamp_ns, (float(msg.position), float(msg.target))))
+        bus.subscribe(B.GRIPPER_STATE,
+                      lambda msg: grips.add(msg.timestamp_ns, (float(msg.position), float(msg.target))))
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
@@ -234,7 +241,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                 last_infer = time.monotonic()
                 try:
                     t_obs = newest[primary]
-                    times = [t_obs - (To - 1 - k) * dt_ns for k in range(To)]
+                    times = [t_obs - (To - 1 - k) * obs_dt_ns for k in range(To)]
                     imgs = {c: np.stack([resize_nearest(frames[c].nearest(t)[1], H, W) for t in times])
                             for c in bundle.cameras}
                     prop = []
