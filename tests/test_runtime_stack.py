@@ -274,3 +274,28 @@ def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
     assert np.median([(c.times_ns[0] - c.obs_time_ns) for _, c in chunks]) == 1e8
     rob = _clean_exit(la)
     assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
+
+
+def test_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bundle):
+    """`sudd run --speed 0.5`: a chunk every 0.2 s whose actions are 0.2 s apart (the arm at half the recorded
+    pace); the arm still moves."""
+    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, speed=0.5), hub="tcp/127.0.0.1:0")
+    la.start()
+    chunks = []
+    la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
+    try:
+        info = la.wait_ready(90)
+        assert info["policy"]["hz"] == 5.0
+        la.say(info["robot"]["instruction"], "r")
+        deadline = time.monotonic() + 30
+        while len(chunks) < 9 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        la.shutdown("test end")
+    assert len(chunks) >= 9, len(chunks)
+    arrivals = np.array([t for t, _ in chunks[1:]])
+    assert 0.15 < np.median(np.diff(arrivals)) < 0.4  # 0.2 s between chunks, not 0.1 s
+    for _, c in chunks:
+        assert np.allclose(np.diff(c.times_ns), 2e8)
+    rob = _clean_exit(la)
+    assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
