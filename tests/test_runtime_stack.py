@@ -250,16 +250,15 @@ def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
     assert policy.procs == {} and policy.bus is None
 
 
-def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
-    """`sudd run --replan-every 4`: a chunk every 4th tick (2.5 Hz for a 10 Hz bundle), its actions still
-    0.1 s apart, as the demonstrations were recorded; the arm keeps moving between chunks."""
-    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, replan_every=4), hub="tcp/127.0.0.1:0")
+def _nine_chunks(bundle, **policy):
+    """Run the sim stack with these policy-node settings until 9 chunks arrived: (policy's ready info, [(arrival,
+    chunk)], the robot node's exit report)."""
+    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, **policy), hub="tcp/127.0.0.1:0")
     la.start()
     chunks = []
     la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
     try:
         info = la.wait_ready(90)
-        assert info["policy"]["hz"] == 2.5
         la.say(info["robot"]["instruction"], "r")
         deadline = time.monotonic() + 30
         while len(chunks) < 9 and time.monotonic() < deadline:
@@ -267,35 +266,29 @@ def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
     finally:
         la.shutdown("test end")
     assert len(chunks) >= 9, len(chunks)
+    return info["policy"], chunks, _clean_exit(la)
+
+
+def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
+    """`sudd run --replan-every 4`: a chunk every 4th tick (2.5 Hz for a 10 Hz bundle), its actions still
+    0.1 s apart, as the demonstrations were recorded; the arm keeps moving between chunks."""
+    info, chunks, rob = _nine_chunks(bundle, replan_every=4)
+    assert info["hz"] == 2.5
     arrivals = np.array([t for t, _ in chunks[1:]])
     assert 0.3 < np.median(np.diff(arrivals)) < 0.8  # 0.4 s between chunks, not 0.1 s
     for _, c in chunks:
         assert np.allclose(np.diff(c.times_ns), 1e8)  # the bundle's 10 Hz
     assert np.median([(c.times_ns[0] - c.obs_time_ns) for _, c in chunks]) == 1e8
-    rob = _clean_exit(la)
     assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
 
 
 def test_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bundle):
     """`sudd run --speed 0.5`: a chunk every 0.2 s whose actions are 0.2 s apart (the arm at half the recorded
     pace); the arm still moves."""
-    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, speed=0.5), hub="tcp/127.0.0.1:0")
-    la.start()
-    chunks = []
-    la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
-    try:
-        info = la.wait_ready(90)
-        assert info["policy"]["hz"] == 5.0
-        la.say(info["robot"]["instruction"], "r")
-        deadline = time.monotonic() + 30
-        while len(chunks) < 9 and time.monotonic() < deadline:
-            time.sleep(0.05)
-    finally:
-        la.shutdown("test end")
-    assert len(chunks) >= 9, len(chunks)
+    info, chunks, rob = _nine_chunks(bundle, speed=0.5)
+    assert info["hz"] == 5.0
     arrivals = np.array([t for t, _ in chunks[1:]])
     assert 0.15 < np.median(np.diff(arrivals)) < 0.4  # 0.2 s between chunks, not 0.1 s
     for _, c in chunks:
         assert np.allclose(np.diff(c.times_ns), 2e8)
-    rob = _clean_exit(la)
     assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
