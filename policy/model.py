@@ -3,8 +3,7 @@
 Shapes (B batch, To obs horizon, Tp prediction horizon, Da action dim, Dp proprio dim, G global cond dim):
 
     ImageEncoder     (N, 3, h, w) float in [0, 1]                          -> (N, image_feature_dim)
-    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, cfg.proprio_input_dim) normalized (then any
-                     stage one-hot, policy.stage), text (B, cfg.text_input_dim) -> (B, G)
+    ObsEncoder       images {camera: (B, To, 3, h, w)}, proprio (B, To, proprio_input_dim), text (B, I) -> (B, G)
     ConditionalUnet1D  noisy actions (B, Tp, Da), timestep (B,) int64, cond (B, G)  -> predicted noise (B, Tp, Da)
                      (= .denoise(noisy, timestep, .condition(cond)), with .condition(cond) -> (B, F) FiLM part)
     DiffusionPolicy  .encode(...) -> (B, G); .forward(noisy, t, cond) -> (B, Tp, Da); .loss(...) -> scalar
