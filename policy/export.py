@@ -5,8 +5,9 @@
 Bundle layout (format "sudd-policy-bundle", version 1):
 
     manifest.json        format/version, opset, graph I/O (names, shapes, dtypes), horizons, dims, cameras and
-                         image/crop size, tasks + known instructions, data content hash, config, DDIM schedule,
-                         parameter counts, file sizes + sha256, weight storage, text-encoder and parity figures
+                         image/crop size, tasks + known instructions, the pace per task family (policy.pace),
+                         data content hash, config, DDIM schedule, parameter counts, file sizes + sha256, weight
+                         storage, text-encoder and parity figures
     obs_encoder.onnx     image_<camera> uint8 (B,To,H,W,3) full frames, proprio (B,To,Dp) normalized (Dp: the
                          recorded proprio, then dims.stage_bins one-hot grasp-cycle classes, policy.stage),
                          text_embedding (B,I) -> cond (B,G); the centre crop and /255 are inside the graph;
@@ -47,6 +48,7 @@ from policy.bundle import sha256_file
 from policy.config import TEXT_DIM, PolicyConfig
 from policy.model import DiffusionPolicy, count_params, film_dim, prepare_images
 from policy.normalize import STAT_KEYS, Normalizer
+from policy.pace import check_pace_table
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
 from policy.warm_start import read_record
@@ -174,13 +176,14 @@ PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
 def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Path | None = None, ema: bool = True,
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
            inference_steps: int | None = None, noise_scale: float | None = None,
-           text_encoder_from: str | Path | None = None) -> dict:
+           text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights) to a bundle directory; returns the manifest.
 
     inference_steps: DDIM steps the bundle samples with, instead of the run's config (the network is trained
     for every timestep, so this is an inference choice: more steps, smoother chunks, more latency).
     noise_scale: the sampling temperature, instead of the run's config (also an inference choice).
-    text_encoder_from: copy the text encoder from this bundle instead of building it from the installed package."""
+    text_encoder_from: copy the text encoder from this bundle instead of building it from the installed package.
+    pace: {task family or "*": speed} the runtime plays the chunks at (policy.pace; default every family at 1)."""
     from policy.config import load_policy_config
     from policy.train import load_run_model
 
@@ -195,10 +198,11 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         training["warm_start"] = warm
     normalizer = Normalizer.load(run_dir / "stats.npz")
     data_info = json.loads((run_dir / "dataset.json").read_text())
+    check_pace_table(pace or {}, data_info.get("tasks", []), "--pace")  # before minutes of exporting
     if "gripper_levels" not in data_info:
         data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
-                        text_encoder_from)
+                        text_encoder_from, pace)
 
 
 def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
@@ -219,7 +223,7 @@ def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
 def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir: str | Path,
                  data_info: dict | None = None, training: dict | None = None, opset: int = OPSET,
                  cache_dir: str | Path | None = None, fp16_weights: bool = True,
-                 text_encoder_from: str | Path | None = None) -> dict:
+                 text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
 
     fp16_weights: store the policy graphs' weights as float16; `model` itself is left unrounded."""
@@ -270,6 +274,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                           "spacing": "trailing"},
             SAMPLER_KEY[cfg.objective]: schedule_for(model), "sampling": {"noise_scale": cfg.noise_scale},
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
+            "pace": check_pace_table(pace or {}, data_info.get("tasks", []), "--pace"),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),
             "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond)

@@ -62,10 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="simulated inference lag per chunk, fixed (default: each inference's measured wall time, "
                          "which varies from run to run; fix it, e.g. 6, to compare bundles on exactly the same "
                          "episodes)")
-    ev.add_argument("--speed", type=float, default=1.0, metavar="F",
-                    help="pace the arm follows the policy's chunks at, a fraction of the recorded one in [0.1, 1] "
-                         "(default 1; 0.5: actions and ticks 0.2 s apart, observations as trained; see sudd run "
-                         "--speed)")
+    ev.add_argument("--speed", default="", metavar="F|TASK=F,...",
+                    help="pace the arm follows the policy's chunks at per task family, a fraction of the recorded "
+                         "one in [0.1, 1] (default: the bundle's pace table; 0.5: actions and ticks 0.2 s apart, "
+                         "observations as trained; TASK=F,... for some families; see sudd run --speed)")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -83,14 +83,15 @@ def _eval(args) -> int:
     from policy.bundle import Bundle
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
-    from runtime.pace import check_speed
+    from runtime.pace import check_speed_spec, resolve_pace
     from sim.tasks import get_task
 
     if args.latency_ms is not None and not 0.0 <= args.latency_ms < 1000.0:
         raise ValueError(f"--latency-ms {args.latency_ms}: expected 0 <= MS < 1000 (the simulated inference lag of "
                          "one chunk); leave it out to use the measured time")
-    check_speed(args.speed)
+    check_speed_spec(args.speed)
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
+    pace = resolve_pace(bundle.manifest, args.speed)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     controller = with_bundle_levels(controller, bundle.manifest)  # recorded in summary.json as used
     bundle.check_replan_every(args.replan_every)
@@ -120,7 +121,7 @@ def _eval(args) -> int:
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
-                "latency_ms": args.latency_ms, "speed": args.speed,
+                "latency_ms": args.latency_ms, "pace": pace.table,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
@@ -156,7 +157,8 @@ def _eval(args) -> int:
                "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
                "bundle": bundle.info()}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\n{table}\n")
+    (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
+                                         f"speed): {pace.describe()}\n\n{table}\n")
     png = plot(rows, args.out / "success.png")
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -228,6 +230,7 @@ def _job(job: dict) -> dict:
 
 def _policy(job: dict, s: dict, holdout) -> dict:
     from runtime.eval_filmstrip import Filmstrip
+    from policy.pace import Pace
     from runtime.evaluate import run_policy_episode
 
     strip = Filmstrip() if s["filmstrips"] else None
@@ -237,7 +240,7 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
-                                 speed=s.get("speed", 1.0)).record()
+                                 speed=Pace(s.get("pace", {})).speed(job["task"])).record()
         if strip is not None and not out["success"]:
             title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
                      f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")

@@ -36,7 +36,8 @@ import numpy as np
 
 from runtime.controller import ControllerConfig, ControllerLoop, with_bundle_levels
 from runtime.messages import ActionChunk
-from runtime.pace import action_period_ns, check_speed
+from policy.pace import check_speed
+from runtime.pace import action_period_ns
 from runtime.sim_cell import cell_limits
 from safety import SafetyFilter, default_limits
 from sim.build import build_episode
@@ -70,6 +71,7 @@ class EpisodeOutcome:
     drawer_max: float | None = None  # the drawer's largest open fraction, 0-1 (None: no drawer; eval_progress)
     drawer_end: float | None = None  # and at the end
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
+    speed: float = 1.0  # the pace the chunks were played at (policy.pace)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -113,7 +115,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     To = bundle.obs_horizon
     budget = family.max_seconds * time_limit_factor
     target = _target_of(inst)
-    out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target)
+    out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target, speed=speed)
     events: Counter = Counter()
     progress = GraspProgress()
     cycles = GraspCycles()  # grasp cycles since the start, as the policy node counts them

@@ -67,7 +67,7 @@ def bundle_manifest(path) -> dict:
 
 
 def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "off", command: str = "",
-              robot: str = "ur5", replan_every: int = 1, speed: float = 1.0, **robot_overrides) -> list[NodeSpec]:
+              robot: str = "ur5", replan_every: int = 1, speed: str = "", **robot_overrides) -> list[NodeSpec]:
     """robot node (sim twins + cameras matching the bundle) + policy node. The scene keeps the bundle's
     held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do."""
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -83,7 +83,7 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
 
 
 def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], allow_motion: bool = False,
-                   command: str = "", replan_every: int = 1, speed: float = 1.0, **robot_overrides) -> list[NodeSpec]:
+                   command: str = "", replan_every: int = 1, speed: str = "", **robot_overrides) -> list[NodeSpec]:
     """robot node on URRtdeArm + Robotiq2F85, one camera node per bundle camera, the policy node."""
     from runtime.nodes.camera_node import CameraNodeConfig
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -108,7 +108,7 @@ def answers(event, command_id: str) -> bool:
     return event.kind.startswith("command_") and event.message.startswith(f"[{command_id}]")
 
 
-def policy_stack(bundle: str, command: str = "", replan_every: int = 1, speed: float = 1.0) -> list[NodeSpec]:
+def policy_stack(bundle: str, command: str = "", replan_every: int = 1, speed: str = "") -> list[NodeSpec]:
     """The policy node alone: for a computer that joins the robot's bus with `--connect` (a GPU box)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
 

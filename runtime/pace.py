@@ -1,29 +1,35 @@
 """How fast the arm follows the policy: its chunks' actions spaced 1 / (control_hz x speed) apart.
 
-Why: the collector comes in at 5 cm/s for its last second before a grasp; the distilled policy, replanning
-every 0.1 s, reaches the drawer front at 10-25 cm/s with its finger links, and the contact force stops the arm
-(8 of 20 drawer_close episodes of the shipped bundle). Played at half the recorded pace (speed 0.5: actions
-0.2 s apart, a chunk every 0.2 s), the same bundle completes drawer_close 20/20 with no stop, within the same
-time limit (policy/EXPERIMENTS.md, "Half speed"). Only the execution slows: the observation history stays
-1 / control_hz apart, the spacing the policy was trained on, so it sees the motions it knows, slower.
+The speed is per task family (policy.pace: the bundle's `pace` table, `--speed` on top). Only the execution
+slows: the observation history stays 1 / control_hz apart, the spacing the policy was trained on, so it sees
+the motions it knows, slower.
 """
 
 from __future__ import annotations
 
-import math
-
-MIN_SPEED = 0.1
-
-
-def check_speed(speed: float) -> float:
-    """The speed as a float in [MIN_SPEED, 1], or a ValueError that says what to give."""
-    s = float(speed)
-    if not (math.isfinite(s) and MIN_SPEED <= s <= 1.0):
-        raise ValueError(f"speed {speed!r}: expected a fraction of the demonstrated pace in [{MIN_SPEED}, 1] "
-                         "(1: as recorded; 0.5: half as fast, actions 2 / control_hz apart)")
-    return s
+from policy.pace import Pace, bundle_pace, check_speed, parse_pace
 
 
 def action_period_ns(control_hz: float, speed: float) -> int:
     """Nanoseconds between a chunk's actions (and between the policy's ticks) at `speed`."""
     return int(round(1e9 / (control_hz * check_speed(speed))))
+
+
+def check_speed_spec(spec: str | None) -> dict[str, float]:
+    """`--speed` checked before anything starts ({} when not given: the bundle's pace)."""
+    from sim.tasks import task_names
+
+    return parse_pace(spec, task_names()) if spec not in (None, "") else {}
+
+
+def resolve_pace(manifest: dict, spec: str | None) -> Pace:
+    """The bundle's pace with `--speed` on top."""
+    return bundle_pace(manifest).overridden(check_speed_spec(spec))
+
+
+def command_speed(pace: Pace, instruction: str | None) -> tuple[str | None, float]:
+    """(the family of a trained instruction, the speed it plays at)."""
+    from sim.tasks import task_of_instruction
+
+    task = task_of_instruction(instruction) if instruction else None
+    return task, pace.speed(task)

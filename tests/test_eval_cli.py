@@ -55,20 +55,26 @@ def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, t
     assert summary["settings"]["controller"]["gripper_min_hold"] == 0.6
 
 
-def test_eval_cli_passes_a_fixed_latency_and_filmstrips_and_refuses_a_negative_latency(untrained_bundle, tmp_path,
-                                                                                          episode_kwargs, capsys):
+def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_ones(untrained_bundle, tmp_path,
+                                                                                      episode_kwargs, capsys):
     from runtime.cli import main
 
     base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
             "--time-limit-factor", "0.03"]
-    assert main([*base, "--latency-ms", "6", "--filmstrips", "--out", str(tmp_path / "a")]) == 0
+    assert main([*base, "--latency-ms", "6", "--filmstrips", "--speed", "pick_place=0.5", "--out",
+                 str(tmp_path / "a")]) == 0
     assert main([*base, "--out", str(tmp_path / "b")]) == 0
     assert [kw["latency_s"] for kw in episode_kwargs] == [0.006, None]
+    assert [kw["speed"] for kw in episode_kwargs] == [0.5, 1.0]  # the untrained bundle records no pace: 1
     (a,), (b,) = (map(json.loads, (tmp_path / d / "results.jsonl").read_text().splitlines()) for d in "ab")
     assert not a["success"] and a["filmstrip"] == str(tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png")
     assert (tmp_path / "a" / "filmstrips" / "seen_pick_place_100000.png").stat().st_size > 1000
     assert "filmstrip" not in b and not (tmp_path / "b" / "filmstrips").exists()
-    assert json.loads((tmp_path / "a" / "summary.json").read_text())["settings"]["latency_ms"] == 6.0
+    settings = json.loads((tmp_path / "a" / "summary.json").read_text())["settings"]
+    assert settings["latency_ms"] == 6.0 and settings["pace"] == {"pick_place": 0.5} and a["speed"] == 0.5
+    assert "Policy pace (fraction of the recorded speed): pick_place 0.5" in (tmp_path / "a" / "results.md").read_text()
+    assert main([*base, "--speed", "drawer_shut=0.5", "--out", str(tmp_path / "d")]) == 2
+    assert "--speed.drawer_shut: unknown task family" in capsys.readouterr().err
     assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2
     assert "--latency-ms -1.0: expected 0 <= MS < 1000" in capsys.readouterr().err
 

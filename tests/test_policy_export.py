@@ -53,7 +53,7 @@ def test_layout_and_manifest(bundle_dir):
     assert m["tasks"] == ["pick_place", "stack"] and m["instructions"] == ["do pick_place", "do stack"]
     assert len(m["data"]["content_hash"]) == 64 and m["training"]["ema"] is True
     assert len(m["ddim"]["timesteps"]) == m["config"]["inference_steps"] <= 8
-    assert m["sampling"] == {"noise_scale": 1.0}
+    assert m["sampling"] == {"noise_scale": 1.0} and m["pace"] == {}  # every family at the recorded pace
     assert m["graphs"] == {k: dict(v, file=m["graphs"][k]["file"]) for k, v in expected_graphs(m).items()}
     assert m["parity"]["step_max_abs_err"] <= STEP_TOL and m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL
     assert m["text_encoder"]["int8_min_cosine_vs_fp32"] >= 0.99
@@ -169,6 +169,8 @@ def _bad_stats(p: Path):
     (lambda p: (p / "stats.npz").write_bytes(b"garbage"), "7 bytes, manifest says"),
     (lambda p: _edit(p, lambda m: m.pop("ddim")), "exactly one sampler schedule"),
     (lambda p: _edit(p, lambda m: m.__setitem__("sampling", {"noise_scale": 1.5})), "noise_scale 1.5 is outside"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("pace", {"stack": 0.0})), r"manifest pace.stack 0.0: expected"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("pace", {"drawer_open": 0.5})), "pace.drawer_open: unknown task"),
 ])
 def test_load_refuses_broken_bundles(bundle_dir, tmp_path, breakage, reason):
     broken = linked_copy(bundle_dir, tmp_path / "b")
@@ -205,7 +207,7 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["export", str(run), "--out", str(tmp_path / "b"), "--inference-steps", "3",
-                              "--noise-scale", "0.5"])
+                              "--noise-scale", "0.5", "--pace", "stack=0.5"])
     monkeypatch.setenv("SUDD_CACHE_DIR", str(CACHE))
     assert args.func(args) == 0
     assert "parity step" in capsys.readouterr().out and (tmp_path / "b" / "manifest.json").is_file()
@@ -213,6 +215,11 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
     assert len(m["ddim"]["timesteps"]) == 3 and m["config"]["inference_steps"] == 3
     assert m["parity"]["chunk_max_abs_err"] <= CHUNK_TOL and len(Bundle.load(tmp_path / "b")._schedule) == 3
     assert m["sampling"] == {"noise_scale": 0.5} and Bundle.load(tmp_path / "b", warmup=False).noise_scale == 0.5
+    assert m["pace"] == {"stack": 0.5} and Bundle.load(tmp_path / "b", warmup=False).pace.speed("stack") == 0.5
+    with pytest.raises(ValueError, match=r"--pace.drawer_open: unknown task family; expected one of \['pick_place', "
+                                         r"'stack'\]"):  # a family the run's data has not: before exporting
+        args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--pace", "drawer_open=0.5"]))
+    assert not (tmp_path / "c").exists()
     with pytest.raises(ConfigError, match="inference_steps"):
         args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--inference-steps", "0"]))
     with pytest.raises(ConfigError, match="noise_scale"):

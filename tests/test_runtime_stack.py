@@ -250,13 +250,15 @@ def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
     assert policy.procs == {} and policy.bus is None
 
 
-def _nine_chunks(bundle, **policy):
+def _nine_chunks(bundle, events=None, **policy):
     """Run the sim stack with these policy-node settings until 9 chunks arrived: (policy's ready info, [(arrival,
-    chunk)], the robot node's exit report)."""
+    chunk)], the robot node's exit report); `events`, a list, receives the StatusEvents."""
     la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, **policy), hub="tcp/127.0.0.1:0")
     la.start()
     chunks = []
     la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
+    if events is not None:
+        la.bus.subscribe(B.SAFETY_EVENT, events.append)
     try:
         info = la.wait_ready(90)
         la.say(info["robot"]["instruction"], "r")
@@ -282,11 +284,23 @@ def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
     assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
 
 
-def test_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bundle):
-    """`sudd run --speed 0.5`: a chunk every 0.2 s whose actions are 0.2 s apart (the arm at half the recorded
-    pace); the arm still moves."""
-    info, chunks, rob = _nine_chunks(bundle, speed=0.5)
-    assert info["hz"] == 5.0
+def test_a_family_at_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bundle, tmp_path):
+    """A bundle whose pace table plays pick_place at 0.5: idle at the bundle's 10 Hz, then, once a pick_place
+    command is accepted (and says its family and speed), a chunk every 0.2 s whose actions are 0.2 s apart (the
+    arm at half the recorded pace); the arm still moves."""
+    import json
+
+    from policy.testing import linked_copy
+
+    paced = linked_copy(bundle, tmp_path / "paced")
+    manifest = json.loads((paced / "manifest.json").read_text())
+    (paced / "manifest.json").write_text(json.dumps({**manifest, "pace": {"pick_place": 0.5}}))
+    events = []
+    info, chunks, rob = _nine_chunks(paced, events)
+    assert info["hz"] == 10.0 and info["pace"] == {"pick_place": 0.5}
+    accepted = [e for e in events if e.kind == "command_accepted"]
+    assert len(accepted) == 1 and "pick_place at speed 0.5" in accepted[0].message, accepted
+    assert accepted[0].values["speed"] == 0.5
     arrivals = np.array([t for t, _ in chunks[1:]])
     assert 0.15 < np.median(np.diff(arrivals)) < 0.4  # 0.2 s between chunks, not 0.1 s
     for _, c in chunks:

@@ -3,7 +3,7 @@
     python -m runtime.nodes.policy_node --config '{"bundle": "policy/bundles/multitask"}'
 
 Runs in its own process, so inference (tens of ms) never blocks the 500 Hz controller. At most hz (the bundle's
-control_hz, 10 Hz, times `speed`; divided by `replan_every`) times a second, on the monotonic clock:
+control_hz, 10 Hz, times the command's speed; divided by `replan_every`) times a second, on the monotonic clock:
 
 1. A tick is the arrival of a new frame of the first (primary) camera, at most hz a second, so
    inference starts as soon as the observation exists (the camera rate sets the pace; with no frames the
@@ -25,7 +25,8 @@ Language: a LanguageCommand is compared with every trained instruction (bundle.t
 cosine). Below `similarity_threshold` it is REFUSED: a StatusEvent "command_refused" names the closest
 instruction, the cosine and the known tasks/instructions, and nothing is executed; a refused command also
 clears the current one (the operator asked for something else: the arm holds rather than continuing an old
-task). An accepted one gives "command_accepted". Both messages start with "[command_id]" so `sudd say` can
+task). An accepted one gives "command_accepted", naming its family (that of the closest trained instruction)
+and the speed that family plays at (policy.pace), which sets the ticks from then on. Both messages start with "[command_id]" so `sudd say` can
 match its answer.
 """
 
@@ -58,9 +59,10 @@ class PolicyNodeConfig:
     # Infer on every Nth tick only (1..the bundle's action horizon): less CPU, the same action rate. The
     # chunk's actions stay 1/hz apart at the bundle's rate, the rate its demonstrations were recorded at.
     replan_every: int = 1
-    # The pace the arm follows the chunks at, a fraction of the recorded one (runtime.pace): ticks and actions
+    # The pace the arm follows the chunks at, a fraction of the recorded one per task family (policy.pace):
+    # "" the bundle's table; "F" every family at F; "TASK=F,..." those families. Ticks and actions
     # 1 / (hz x speed) apart; the observation history stays 1 / hz apart, as in training.
-    speed: float = 1.0
+    speed: str = ""
 
 
 CONFIG = PolicyNodeConfig
@@ -136,7 +138,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
-    from runtime.pace import action_period_ns
+    from runtime.pace import action_period_ns, command_speed, resolve_pace
     from runtime import messages as m
 
     if not cfg.bundle:
@@ -146,7 +148,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     data_hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
     To, (H, W) = bundle.obs_horizon, bundle.image_size
     obs_dt_ns = int(round(1e9 / data_hz))  # the observation history's spacing: the training data's
-    dt_ns = action_period_ns(data_hz, cfg.speed)  # between the chunk's actions, and the node's ticks
+    pace = resolve_pace(bundle.manifest, cfg.speed)
+    dt_ns = action_period_ns(data_hz, pace.speed(None))  # between the chunk's actions, and the node's ticks
     hz = 1e9 / dt_ns
     rng = np.random.default_rng(cfg.seed)
     report: dict = {"chunks": 0, "ticks": 0, "stale_ticks": 0, "idle_ticks": 0, "refused": 0, "accepted": 0,
@@ -188,7 +191,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
-                   "tasks": bundle.tasks, "instructions": len(bundle.instructions)})
+                   "tasks": bundle.tasks, "instructions": len(bundle.instructions), "pace": pace.table})
         last_infer = -1.0
         while not ctx.should_stop():
             got = new_frame.wait(1.0 / hz)
@@ -205,8 +208,12 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     report["accepted"] += 1
                     current.update(text=text, emb=bundle.embed(text))
                     cycles.reset()  # a new task starts at its first grasp
+                    task, speed = command_speed(pace, best)
+                    dt_ns = action_period_ns(data_hz, speed)
+                    hz = 1e9 / dt_ns
                     event("command_accepted", "info", f"{tag}accepted '{text}' (closest trained instruction "
-                                                      f"'{best}', cosine {cos:.2f})", cosine=cos)
+                                                      f"'{best}', cosine {cos:.2f}; {task or 'no known family'} "
+                                                      f"at speed {speed:g})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
                     current.update(text=None, emb=None)
