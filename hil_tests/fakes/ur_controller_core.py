@@ -22,6 +22,7 @@ import socket
 import struct
 import threading
 import time
+from collections import deque
 
 from hil_tests.fakes.ur_rtde_protocol import RtdeSession
 from hil_tests.fakes.ur_script_emulator import ControlScriptEmulator
@@ -51,6 +52,12 @@ class ControllerCore:
         self._cycle = threading.Condition(self.lock)
         self.cycle_no = 0
         self.inputs: dict = {}
+        # The input registers as each cycle latched them, when a client had written since the cycle before: a
+        # script thread starved for a few cycles (a loaded CI machine) still sees every write in order, as a
+        # real controller's script, never late, does; a speedJ overwritten by the next watchdog kick before the
+        # script looked was otherwise lost.
+        self._latched: deque = deque(maxlen=500)
+        self._last_latched: dict = {}
         self.input_stamp: dict[str, float] = {}
         self._owner: dict = {}
         self.outputs: dict = {}
@@ -84,6 +91,9 @@ class ControllerCore:
             with self.lock:
                 self._supervise(now)
                 self.cycle_no += 1
+                if self.inputs != self._last_latched:
+                    self._last_latched = dict(self.inputs)
+                    self._latched.append((self.cycle_no, self._last_latched))
                 self._cycle.notify_all()
                 due = [s for s in self.sessions if s.started and now >= s.next_due]
             if due and not self.muted:
@@ -165,11 +175,21 @@ class ControllerCore:
             self.outputs[name] = value
 
     def sync(self, program):
-        """URScript sync(): wait for the next controller cycle; the input registers as of then (None: killed)."""
+        """URScript sync(): the input registers as of the next controller cycle after the one this program last
+        saw (the oldest latched change it has not seen, when it fell behind); None: killed."""
         with self._cycle:
-            n = self.cycle_no
-            self._cycle.wait_for(lambda: self.cycle_no != n or not program.alive, timeout=1.0)
-            return dict(self.inputs) if program.alive and self.program is program else None
+            seen = getattr(program, "synced_cycle", None)
+            if seen is None:  # a new program starts at the next cycle, with what the registers hold then
+                seen = self.cycle_no
+            self._cycle.wait_for(lambda: self.cycle_no > seen or not program.alive, timeout=1.0)
+            if not (program.alive and self.program is program):
+                return None
+            for cycle, regs in self._latched:
+                if cycle > seen:
+                    program.synced_cycle = cycle
+                    return dict(regs)
+            program.synced_cycle = self.cycle_no
+            return dict(self.inputs)
 
     def set_watchdog(self, var: str, freq: float) -> None:
         with self.lock:
