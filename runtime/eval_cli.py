@@ -229,8 +229,8 @@ def _job(job: dict) -> dict:
 
 
 def _policy(job: dict, s: dict, holdout) -> dict:
-    from runtime.eval_filmstrip import Filmstrip
     from policy.pace import Pace
+    from runtime.eval_filmstrip import Filmstrip
     from runtime.evaluate import run_policy_episode
 
     strip = Filmstrip() if s["filmstrips"] else None

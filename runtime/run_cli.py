@@ -86,8 +86,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "task family (a command's family: its closest trained instruction's). Default: the "
                           "bundle's pace table (the shipped bundle: drawer_close 0.5, the rest 1: at half speed "
                           "its drawer_close went from 12/20 to 19/20, and 10/20 to 18/20 on fresh seeds, while "
-                          "pick_place fell from 20/20 to 13/20; policy/EXPERIMENTS.md, \"Half speed\"). F: every family at F; TASK=F,...: those "
-                          "families (\"*=F\" the others), e.g. --speed drawer_close=0.4,*=0.8")
+                          "pick_place fell from 20/20 to 13/20; policy/EXPERIMENTS.md, \"Half speed\"). F: every "
+                          "family at F; TASK=F,...: those families (\"*=F\" the others), e.g. --speed "
+                          "drawer_close=0.4,*=0.8")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)

@@ -26,8 +26,8 @@ cosine). Below `similarity_threshold` it is REFUSED: a StatusEvent "command_refu
 instruction, the cosine and the known tasks/instructions, and nothing is executed; a refused command also
 clears the current one (the operator asked for something else: the arm holds rather than continuing an old
 task). An accepted one gives "command_accepted", naming its family (that of the closest trained instruction)
-and the speed that family plays at (policy.pace), which sets the ticks from then on. Both messages start with "[command_id]" so `sudd say` can
-match its answer.
+and the speed that family plays at (policy.pace), which sets the ticks from then on. Both messages start with
+"[command_id]" so `sudd say` can match its answer.
 """
 
 from __future__ import annotations
