@@ -84,5 +84,5 @@ def linked_copy(bundle_dir: str | Path, dst: str | Path) -> Path:
         if p.name in ("manifest.json", "stats.npz"):
             shutil.copyfile(p, dst / p.name)
         else:
-            (dst / p.name).symlink_to(p)
+            (dst / p.name).symlink_to(p.resolve())  # a relative source would dangle from dst
     return dst

@@ -180,6 +180,12 @@ def test_load_refuses_broken_bundles(bundle_dir, tmp_path, breakage, reason):
         Bundle.load(broken, warmup=False)
 
 
+def test_a_linked_copy_made_from_a_relative_path_loads(bundle_dir, tmp_path, monkeypatch):
+    monkeypatch.chdir(Path(bundle_dir).parent)
+    copy = linked_copy(Path(bundle_dir).name, tmp_path / "copy")
+    assert Bundle.load(copy, warmup=False).cameras
+
+
 def test_bundle_module_does_not_import_torch(bundle_dir):
     code = (f"import sys, numpy as np; from policy.bundle import Bundle; b = Bundle.load({str(bundle_dir)!r}); "
             "b.act({c: np.zeros((2, 32, 32, 3), np.uint8) for c in b.cameras}, np.zeros((2, 16)), b.embed('hi')); "
