@@ -198,7 +198,6 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         training["warm_start"] = warm
     normalizer = Normalizer.load(run_dir / "stats.npz")
     data_info = json.loads((run_dir / "dataset.json").read_text())
-    check_pace_table(pace or {}, data_info.get("tasks", []), "--pace")  # before minutes of exporting
     if "gripper_levels" not in data_info:
         data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
@@ -233,6 +232,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     from policy.text import MAX_SEQ_LENGTH
     from policy.text_export import add_text_encoder
 
+    pace = check_pace_table(pace or {}, (data_info or {}).get("tasks", []), "--pace")  # before minutes of work
     model = model.eval().cpu()
     weights: dict = {"dtype": "float32"}
     if fp16_weights:  # the graphs then hold exactly this rounded model, so parity stays an exact check
@@ -274,7 +274,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                           "spacing": "trailing"},
             SAMPLER_KEY[cfg.objective]: schedule_for(model), "sampling": {"noise_scale": cfg.noise_scale},
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
-            "pace": check_pace_table(pace or {}, data_info.get("tasks", []), "--pace"),
+            "pace": pace,
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),
             "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond)

@@ -69,7 +69,7 @@ class Pace:
     table: dict[str, float] = field(default_factory=dict)
 
     def speed(self, task: str | None) -> float:
-        return self.table.get(task, self.table.get(OTHERS, 1.0)) if task else self.table.get(OTHERS, 1.0)
+        return self.table.get(task, self.table.get(OTHERS, 1.0))  # task None: no family, the "*" speed
 
     def overridden(self, override: dict[str, float]) -> "Pace":
         """`override` on top: with a "*" entry it replaces the whole table (`--speed 0.5`: every family at 0.5),

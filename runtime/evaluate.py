@@ -34,9 +34,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from policy.pace import check_speed
 from runtime.controller import ControllerConfig, ControllerLoop, with_bundle_levels
 from runtime.messages import ActionChunk
-from policy.pace import check_speed
 from runtime.pace import action_period_ns
 from runtime.sim_cell import cell_limits
 from safety import SafetyFilter, default_limits

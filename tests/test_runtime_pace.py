@@ -10,8 +10,8 @@ import pytest
 
 from policy.pace import Pace, bundle_pace, check_pace_table, check_speed, parse_pace
 from runtime.pace import action_period_ns, command_speed, resolve_pace
-from sim.tasks import TASKS, Holdout, task_names, task_of_instruction
 from sim.dr_config import DRConfig
+from sim.tasks import TASKS, Holdout, task_names, task_of_instruction
 
 FAMILIES = task_names()
 
