@@ -44,6 +44,8 @@ KINDS = {
     "gripper_opening": (WARNING, "gripper opening outside [0, max]: clamped, or dropped if not finite (m)"),
     "gripper_speed": (INFO, "gripper speed clamped to its limit (m/s)"),
     "gripper_force": (INFO, "gripper force clamped to its limit (N)"),
+    "gripper_open_held": (WARNING, "gripper opening held: the fingers would open into a keep-out box here "
+                                   "(closure wanted / now)"),
 }
 
 

@@ -125,6 +125,23 @@ class SafetyFilter:
     def report_protective_stop(self, now: float) -> None:
         self.stops.robot_protective_stop(now)
 
+    # ---- the fingers ----------------------------------------------------------------------------------
+    def set_finger_closure(self, closure: float) -> None:
+        """The least closure (0 open .. 1 closed) the fingers can have until the next gripper command, which
+        the controller's gripper channel knows: the finger points checked against the table and the keep-out
+        boxes are placed for it (workspace.gripper_points_closed). Open until told; not a number: open."""
+        if self.workspace.set_closure(closure):
+            self.stream.refresh_points()
+
+    def fingers_may_open(self, closure: float) -> bool:
+        """Whether the fingers may open to `closure` where the arm is commanded now: their points there stay
+        the target margin clear of the table and the keep-out boxes (or no closer than they are already, after
+        a start outside). Closing is always allowed."""
+        ws, st = self.workspace, self.stream
+        if st.pose is None or closure >= ws.closure:
+            return True
+        return ws.slack_at_closure(st.pose, closure) >= min(ws.margin, st.slack)
+
     # ---- the cycle ------------------------------------------------------------------------------------
     def step(self, desired_q, measured_q, measured_qd, now: float, command_time: float,
              desired_tcp=None) -> FilterResult:

@@ -26,10 +26,16 @@ Box = tuple[float, float, float, float, float, float]  # (xmin, ymin, zmin, xmax
 VARIANT_NAMES = ("ur5e", "ur5")
 
 # Points of the 2F-85 fingers in the TCP frame (z along the approach direction, x across the finger gap).
-# They bound the pads and followers from open to fully closed: the pads reach 17.7 mm past the TCP when
-# closed on nothing and +-50.6 mm across when open (measured on sim.robot's model; tests check the bound).
+# Open, they bound the pads at every closure: the pads reach 17.7 mm past the TCP when closed on nothing and
+# +-50.6 mm across when open (measured on sim.robot's model; tests check the bound).
 GRIPPER_POINTS_2F85: tuple[Vec3, ...] = (
     (0.052, 0.014, 0.018), (0.052, -0.014, 0.018), (-0.052, 0.014, 0.018), (-0.052, -0.014, 0.018),
+)
+# The same points with the fingers closed. Between, the points move linearly with the closure, and the pads
+# follow an arc that bulges outward of that line (+-30.4 mm at half closure, the line's 30.6 mm): 10 mm,
+# not the pads' 8.8 mm, keeps the line outside the arc everywhere (tests check it at every tenth).
+GRIPPER_POINTS_2F85_CLOSED: tuple[Vec3, ...] = (
+    (0.010, 0.014, 0.018), (0.010, -0.014, 0.018), (-0.010, 0.014, 0.018), (-0.010, -0.014, 0.018),
 )
 
 
@@ -71,7 +77,12 @@ class WorkspaceLimits:
                                                                    "[xmin, ymin, zmin, xmax, ymax, zmax] each"))
     gripper_points: tuple[Vec3, ...] = field(default=GRIPPER_POINTS_2F85,
                                              metadata=spec(doc="points in the TCP frame checked against "
-                                                               "the table and keep-out boxes"))
+                                                               "the table and keep-out boxes, fingers open"))
+    gripper_points_closed: tuple[Vec3, ...] = field(
+        default=GRIPPER_POINTS_2F85_CLOSED,
+        metadata=spec(doc="the same points with the fingers closed: between, the points move linearly with "
+                          "the least closure the fingers can have until the next gripper command (0 open .. "
+                          "1 closed, from the controller); [] checks the open points always"))
 
 
 @dataclass(frozen=True)
@@ -164,6 +175,14 @@ class SafetyLimits:
         for k, p in enumerate(w.gripper_points):
             if not all(math.isfinite(x) and abs(x) <= 0.5 for x in p):
                 raise ConfigError(f"workspace.gripper_points[{k}] = {list(p)}: each coordinate within 0.5 m")
+        if w.gripper_points_closed and len(w.gripper_points_closed) != len(w.gripper_points):
+            raise ConfigError(f"workspace.gripper_points_closed has {len(w.gripper_points_closed)} points, "
+                              f"gripper_points {len(w.gripper_points)}: give the same points closed, in the same "
+                              "order, or [] to check the open points always")
+        for k, p in enumerate(w.gripper_points_closed):
+            if not all(math.isfinite(x) and abs(x) <= 0.5 for x in p):
+                raise ConfigError(f"workspace.gripper_points_closed[{k}] = {list(p)}: each coordinate within "
+                                  "0.5 m")
         c = self.collision
         if c.stop_distance >= c.slow_distance:
             raise ConfigError(f"collision.stop_distance {c.stop_distance} must be below "
@@ -226,5 +245,5 @@ def load_limits(path: str | Path | None = None, variant: str | None = None,
 
 
 __all__ = ["SafetyLimits", "JointLimits", "WorkspaceLimits", "TcpLimits", "CommandLimits", "CollisionLimits",
-           "GripperLimits", "RecoveryLimits", "GRIPPER_POINTS_2F85", "default_limits", "load_limits",
-           "stop_distance_bound", "ConfigError"]
+           "GripperLimits", "RecoveryLimits", "GRIPPER_POINTS_2F85", "GRIPPER_POINTS_2F85_CLOSED", "default_limits",
+           "load_limits", "stop_distance_bound", "ConfigError"]

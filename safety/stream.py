@@ -46,6 +46,11 @@ class CommandedStream:
         self._set_pose(qn, pose, pts, slack)
         return vn, an
 
+    def refresh_points(self) -> None:
+        """The workspace points and slack of the current output again (after its finger points moved)."""
+        if self.pose is not None:
+            self.pts, self.slack = self.workspace.at(self.pose)
+
     def _set_pose(self, q, pose=None, pts=None, slack=None) -> None:
         if pose is None:
             pose = self.pose_of(q)

@@ -39,13 +39,41 @@ class Workspace:
         self.zt = float(limits.table_z + limits.finger_clearance)
         self.margin = float(limits.target_margin)
         self.keepout = tuple(tuple(float(x) for x in b) for b in limits.keepout)
-        self._grip = tuple(tuple(float(x) for x in p) for p in limits.gripper_points)
+        self._open = tuple(tuple(float(x) for x in p) for p in limits.gripper_points)
+        self._closed = tuple(tuple(float(x) for x in p) for p in limits.gripper_points_closed) or self._open
+        self.closure = 0.0
+        self._grip = self._open
         self.offsets = ((0.0, 0.0, 0.0),) + self._grip
         reach = fk.axis_reach
-        self.reach = tuple(tuple(r + math.sqrt(sum(x * x for x in off)) for r in reach) for off in self.offsets)
+        # from the farther of each point's open and closed place: a bound for every closure in between
+        far = [(0.0, 0.0, 0.0)] + [max(a, b, key=lambda p: sum(x * x for x in p)) for a, b in zip(self._open,
+                                                                                             self._closed)]
+        self.reach = tuple(tuple(r + math.sqrt(sum(x * x for x in off)) for r in reach) for off in far)
         self.reach_max = tuple(max(r[i] for r in self.reach) for i in range(len(reach)))
         self._g_key: tuple = (None, None)  # (frames, points) the cached gradients belong to
         self._g: dict = {}
+
+    def set_closure(self, closure: float) -> bool:
+        """Place the finger points for the least closure the fingers can have (0 open .. 1 closed, clipped;
+        anything not a number counts as open). Returns whether the points moved."""
+        c = _closure(closure)
+        if c == self.closure:
+            return False
+        self.closure, self._grip = c, self._grip_at(c)
+        self.offsets = ((0.0, 0.0, 0.0),) + self._grip
+        return True
+
+    def slack_at_closure(self, pose, closure: float) -> float:
+        """min_slack of an fk.pose with the finger points placed for `closure` (the current ones kept)."""
+        keep = self._grip
+        try:
+            self._grip = self._grip_at(_closure(closure))
+            return self.at(pose)[1]
+        finally:
+            self._grip = keep
+
+    def _grip_at(self, c: float) -> tuple:
+        return tuple(tuple(o + c * (k - o) for o, k in zip(po, pk)) for po, pk in zip(self._open, self._closed))
 
     # ---- points and slacks ----------------------------------------------------------------------------
     def points(self, p, R):
@@ -234,6 +262,15 @@ class Workspace:
             g = sign * (ax[a1] * (P[a2] - o[a2]) - ax[a2] * (P[a1] - o[a1]))
             out += g * 0.5 * (dlo[i] + dhi[i])
         return out
+
+
+def _closure(x) -> float:
+    """A closure in [0, 1]; anything not a finite number is open (0), the widest the fingers can be."""
+    try:
+        c = float(x)
+    except (TypeError, ValueError):
+        return 0.0
+    return min(1.0, max(0.0, c)) if math.isfinite(c) else 0.0
 
 
 def _aabb(pts) -> tuple:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sim_hands import hand_a_block_to_the_fingers
 
 from runtime.controller import ControllerConfig, ControllerLoop
 from runtime.messages import ActionChunk
@@ -123,29 +124,12 @@ def test_gripper_min_hold_keeps_a_grasp_through_a_chunk_that_flickers_open():
         assert loop.grip.commands == 3
 
 
-def _hand_a_block_to_the_fingers(rig):
-    """One of the pick_place world's objects, made weightless (gravcomp) and teleported between the open
-    fingers, as a hand would hold it there."""
-    import mujoco
-
-    world = rig.world
-    m = world.model
-    jnt = next(j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE)
-    adr, dof, body = m.jnt_qposadr[jnt], m.jnt_dofadr[jnt], m.jnt_bodyid[jnt]
-    with rig.lock:
-        m.body_gravcomp[body] = 1.0
-        world.data.qpos[adr:adr + 3] = world.tcp_pose()[:3, 3]
-        world.data.qpos[adr + 3:adr + 7] = [1, 0, 0, 0]
-        world.data.qvel[dof:dof + 6] = 0
-        world.forward()
-
-
 @pytest.mark.parametrize("holding", [False, True])
 def test_a_close_on_nothing_is_reopened_and_the_policy_may_close_again(holding):
     rig, loop, p0, R = make(reopen_hold=1.0)
     rig.gripper.activate()
     if holding:
-        _hand_a_block_to_the_fingers(rig)
+        hand_a_block_to_the_fingers(rig)
     t0 = rig.now_ns() * 1e-9
     grip = lambda t: 0.9 if t >= t0 + 0.2 else 0.0  # noqa: E731  the policy says "closed" from 0.2 s on
     targets = []

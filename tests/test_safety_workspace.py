@@ -111,10 +111,12 @@ def test_gripper_points_bound_the_2f85_fingers():
 
 
 @PROPS
-@given(st.integers(0, 2**32 - 1), st.booleans())
-def test_braking_bound_is_sound(seed, keepout):
-    """Whenever braking_ok accepts a joint travel box, no configuration in the box violates the region."""
+@given(st.integers(0, 2**32 - 1), st.booleans(), st.floats(0.0, 1.0))
+def test_braking_bound_is_sound(seed, keepout, closure):
+    """Whenever braking_ok accepts a joint travel box, no configuration in the box violates the region (with
+    the finger points placed for any closure: the reach bounds cover them all)."""
     _, fk, ws = _ws(keepout=keepout)
+    ws.set_closure(closure)
     rng = np.random.default_rng(seed)
     q = HOME + rng.normal(0, 0.6, 6)
     px, py, pz, R = fk.pose(q.tolist())

@@ -16,6 +16,14 @@ has never seen an empty closed gripper; it carries one on to the bin and the epi
 fingers above the object are an approach it knows. The gripper is asked only every `CHECK_PERIOD_S` while
 a close stands unverified (the real driver's status is a socket round trip, too slow for every cycle).
 
+The channel also keeps the least closure the fingers can have until its next command (`closure_bound`), which
+the safety filter places its finger points for (safety.filter.set_finger_closure): a half-open pre-shape then
+reaches under a cabinet's top to its handle, where the points of open fingers would reach into the top's
+keep-out box. An opening command takes the bound down at once, and is held while the fingers' points at the
+new opening would reach into a keep-out box where the arm is (`may_open`, the filter's check). A closing
+command raises it only as the gripper reports its fingers closed (asked every `CHECK_PERIOD_S` from
+`SETTLE_S` after the command until they stop): fingers that close on an object stop at its width.
+
 Units: the driver speaks normalised registers (position 0 open .. 1 closed, speed/force 0..1); safety's
 `limit_gripper` speaks metres, m/s and N. The 2F-85's ranges convert between them.
 """
@@ -42,8 +50,13 @@ BINARY = (0.0, 1.0)  # open and closed: the levels of a bundle that records none
 
 
 class GripperChannel:
-    def __init__(self, gripper, limits, config):
+    def __init__(self, gripper, limits, config, may_open=None):
+        """`may_open(closure)`: whether the fingers may open to that closure now (None: always)."""
         self.gripper, self.limits, self.cfg = gripper, limits, config
+        self.may_open = may_open
+        self.closure_bound = 0.0  # the least closure the fingers can have until the next command (0: open)
+        self._closing_to: float | None = None  # the closure of a close whose fingers are still moving
+        self._next_bound_check = 0.0
         self.levels = tuple(config.gripper_levels or BINARY)
         self.level: int | None = None  # index of the commanded level; None until the first command
         self.commands = 0
@@ -55,7 +68,10 @@ class GripperChannel:
 
     def update(self, value: float | None, now: float, allowed: bool, events) -> bool | None:
         """Feed the channel's value at this cycle; returns True/False (closed/open) when a command was sent."""
-        if self.gripper is None or value is None or not allowed:
+        if self.gripper is None:
+            return None
+        self._track_closure(now)
+        if value is None or not allowed:
             return None
         cfg = self.cfg
         if self._reopened_until is not None:
@@ -80,6 +96,12 @@ class GripperChannel:
         if cmd is None:
             return None
         position = 1.0 - min(1.0, cmd.opening / STROKE_M)
+        if position < self.closure_bound and self.may_open is not None and not self.may_open(position):
+            if events is not None:
+                events.report("gripper_open_held", now, value=position, limit=self.closure_bound,
+                              message="the fingers would open into a keep-out box here: held until the arm "
+                                      "moves clear (closure wanted / now)")
+            return None
         ok = self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE), wait=False)
         if ok:
             if self.level is not None:  # the first command only sets the state: no hold after it
@@ -87,8 +109,25 @@ class GripperChannel:
             self.level = want
             self.commands += 1
             self._verified = False
+            if position <= self.closure_bound:
+                self.closure_bound, self._closing_to = position, None
+            else:  # the bound rises as the gripper reports the fingers closing
+                self._closing_to = position
+                self._next_bound_check = now + SETTLE_S
             return self.closed
         return None
+
+    def _track_closure(self, now: float) -> None:
+        """Raise the closure bound as a close's fingers are reported closing: from a report taken after the
+        command reached the gripper, they only close further (to the command, or until they meet an object)."""
+        if self._closing_to is None or now < self._next_bound_check:
+            return
+        self._next_bound_check = now + CHECK_PERIOD_S
+        s = self.gripper.state()
+        measured = float(s.position) if math.isfinite(s.position) else 0.0
+        self.closure_bound = max(self.closure_bound, min(measured, self._closing_to))
+        if not s.is_moving or measured >= self._closing_to:
+            self._closing_to = None
 
     @property
     def closed(self) -> bool | None:

@@ -67,7 +67,7 @@ class ControllerLoop(LoopRunner):
         lim = safety.limits
         self.timeline = Timeline(cfg, lim.joints)
         self.converter = ChunkConverter(lim.variant, cfg, lim.joints.velocity)
-        self.grip = GripperChannel(gripper, lim, cfg)
+        self.grip = GripperChannel(gripper, lim, cfg, may_open=safety.fingers_may_open)
         self.contact = ContactYield(cfg, self.converter.kin, self.period)
         self.recovery = RecoveryDriver(safety, arm, hooks, self._emit)
         self.telemetry = Telemetry(cfg.telemetry_size, self.period, cfg.late_tolerance)
@@ -231,6 +231,7 @@ class ControllerLoop(LoopRunner):
         try:
             self.grip.update(self.timeline.gripper(t_eval), now,
                              stops.allows_motion and not (self._stopping or halted), safety.events)
+            safety.set_finger_closure(self.grip.closure_bound)
         except Exception as exc:
             self._emit("driver_error", now, f"gripper command failed: {exc!r}", "error")
         err = math.nan
