@@ -9,6 +9,10 @@ the base axis, its clearance never changes), the fingers against the table (the 
 keep them above it, and grasping needs them close), and pairs that are never farther apart than
 `slow_distance` anywhere in the joint range (structural neighbours, found by sampling at build time).
 
+The fingers are placed for the least closure they can have until the next gripper command (`set_closure`, from
+the controller through the filter; open until told), as the workspace's finger points are: a closed hand
+pushing a drawer shut keeps its fingers' real distance from the cabinet's top, not an open hand's.
+
 `check(q_now, q_pred)` measures the smallest clearance at the current command and at the predicted pose
 (the command plus the motion until the next check plus its braking travel) and returns a scale in [0, 1]:
 1 beyond slow_distance, a linear ramp down to 0 at stop_distance. A prediction that is clearer than now
@@ -18,6 +22,7 @@ rate than the control loop; the filter holds the last scale in between.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
 
@@ -63,6 +68,11 @@ class CollisionGuard:
             self.model = m = spec.compile()
         self.data = mujoco.MjData(m)
         self._qadr = np.array([m.jnt_qposadr[m.joint(j).id] for j in ARM_JOINTS])
+        self._closures, angles, names = finger_sweep(variant.name)
+        self._finger_adr = np.array([m.jnt_qposadr[m.joint(n).id] for n in names], dtype=int)
+        self._finger_angles = angles
+        self.closure = 0.0
+        self._finger_q = angles[0].copy()
 
         def link(g):  # chain index 1..6; the gripper is part of wrist 3 (6); world 0
             body = m.body(m.geom_bodyid[g]).name
@@ -123,11 +133,21 @@ class CollisionGuard:
                 break
         return [p for p, f in zip(pairs, far) if f]
 
+    # ---- the fingers ----------------------------------------------------------------------------------
+    def set_closure(self, closure: float) -> None:
+        """Place the fingers for this closure (0 open .. 1 closed; clipped, not a number: open)."""
+        c = float(closure) if isinstance(closure, (int, float)) and np.isfinite(closure) else 0.0
+        c = min(1.0, max(0.0, c))
+        if c != self.closure:
+            self.closure = c
+            self._finger_q = np.array([np.interp(c, self._closures, a) for a in self._finger_angles.T])
+
     # ---- queries --------------------------------------------------------------------------------------
     def clearance(self, q) -> tuple[float, int]:
         """Smallest distance (capped at slow_distance) over the checked pairs at joints q, and its pair index."""
         m, d = self.model, self.data
         d.qpos[self._qadr] = q
+        d.qpos[self._finger_adr] = self._finger_q
         mujoco.mj_kinematics(m, d)
         a, b = self.pairs[:, 0], self.pairs[:, 1]
         pa, pb = d.geom_xpos[a], d.geom_xpos[b]
@@ -160,4 +180,33 @@ class CollisionGuard:
         return CollisionCheck(scale, now, pred, pair)
 
 
-__all__ = ["CollisionGuard", "CollisionCheck", "TABLE_GEOM"]
+@functools.lru_cache(maxsize=2)
+def finger_sweep(variant: str, steps: int = 1500, every: int = 10):
+    """(closures, joint angles [n, joints], joint names): the gripper's joints as it closes slowly on nothing in
+    sim.robot's model, sampled every `every` steps; closures as the sim gripper measures them, increasing.
+    Why a sweep: the 2F-85's linkage is closed by equality constraints, so its joints cannot be set from the
+    driver's angle alone; once per process (~0.2 s)."""
+    from sim.robot import GRIPPER_DRIVER_JOINTS, GRIPPER_MAX_DRIVER, GRIPPER_PREFIX, get_variant, robot_spec
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        m = robot_spec(get_variant(variant)).compile()
+    d = mujoco.MjData(m)
+    names = tuple(m.joint(j).name for j in range(m.njnt) if m.joint(j).name.startswith(GRIPPER_PREFIX))
+    adr = np.array([m.jnt_qposadr[m.joint(n).id] for n in names])
+    drivers = np.array([m.jnt_qposadr[m.joint(n).id] for n in GRIPPER_DRIVER_JOINTS])
+    lo, hi = m.actuator_ctrlrange[-1]
+    closures, angles = [], []
+    for k in range(steps + 1):
+        d.ctrl[-1] = lo + (hi - lo) * min(1.0, k / (0.8 * steps))
+        mujoco.mj_step(m, d)
+        if k % every == 0:
+            c = float(np.clip(d.qpos[drivers].mean() / GRIPPER_MAX_DRIVER, 0.0, 1.0))
+            if not closures or c > closures[-1]:
+                closures.append(c)
+                angles.append(d.qpos[adr].copy())
+    closures[0], closures[-1] = 0.0, max(1.0, closures[-1])  # the ends: open and closed
+    return np.array(closures), np.array(angles), names
+
+
+__all__ = ["CollisionGuard", "CollisionCheck", "TABLE_GEOM", "finger_sweep"]

@@ -93,6 +93,8 @@ class SafetyFilter:
 
             collision = CollisionGuard(limits)
         self.guard = collision or None
+        if self.guard is not None:  # a guard shared with an earlier filter: its fingers open, as this one's
+            self.guard.set_closure(self.workspace.closure)
         self.collision_every = max(1, round(self.variant.control_hz / limits.collision.rate_hz))
         self.collision_scale = 1.0
         self.last_collision = None
@@ -132,6 +134,8 @@ class SafetyFilter:
         boxes are placed for it (workspace.gripper_points_closed). Open until told; not a number: open."""
         if self.workspace.set_closure(closure):
             self.stream.refresh_points()
+            if self.guard is not None:
+                self.guard.set_closure(self.workspace.closure)
 
     def fingers_may_open(self, closure: float) -> bool:
         """Whether the fingers may open to `closure` where the arm is commanded now: their points there stay

@@ -29,40 +29,79 @@ def _local_points(ws) -> np.ndarray:
     return np.array(ws.points((0.0, 0.0, 0.0), IDENTITY)[1:])
 
 
-def test_the_points_bound_the_2f85_pads_at_every_closure():
-    """At each tenth of the stroke, the points placed for the measured closure reach as wide across the gap as
-    the MuJoCo 2F-85's pads and as deep along the approach."""
+def _gripper_at(ctrl: float):
+    """sim.robot's model with the 2F-85 closed on nothing by `ctrl` (0 open .. 255): (model, data, closure as
+    the sim gripper measures it)."""
     import mujoco
 
-    from sim.robot import GRIPPER_PREFIX, TCP_SITE, robot_spec
+    from sim.robot import robot_spec
     from sim.world import GRIPPER_MAX_DRIVER
 
     model = robot_spec("ur5e").compile()
     data = mujoco.MjData(model)
     drivers = [model.jnt_qposadr[j] for j in range(model.njnt) if "driver" in model.joint(j).name]
-    pads = [g for g in range(model.ngeom) if model.geom_contype[g]
+    data.qpos[:6] = HOME
+    data.ctrl[-1] = ctrl
+    for _ in range(1500):
+        mujoco.mj_step(model, data)
+    return model, data, float(np.clip(data.qpos[drivers].mean() / GRIPPER_MAX_DRIVER, 0.0, 1.0))
+
+
+def _pads(model):
+    from sim.robot import GRIPPER_PREFIX
+
+    return [g for g in range(model.ngeom) if model.geom_contype[g]
             and model.body(model.geom_bodyid[g]).name.startswith(GRIPPER_PREFIX)
             and "pad" in model.body(model.geom_bodyid[g]).name]
+
+
+def test_the_points_bound_the_2f85_pads_at_every_closure():
+    """At each tenth of the stroke, the points placed for the measured closure reach as wide across the gap as
+    the MuJoCo 2F-85's pads and as deep along the approach."""
+    from sim.robot import TCP_SITE
+
     ws = _ws()
     closures = []
     for ctrl in np.linspace(0.0, 255.0, 11):
-        mujoco.mj_resetData(model, data)
-        data.qpos[:6] = HOME
-        data.ctrl[-1] = ctrl
-        for _ in range(1500):
-            mujoco.mj_step(model, data)
-        closure = float(np.clip(data.qpos[drivers].mean() / GRIPPER_MAX_DRIVER, 0.0, 1.0))
+        model, data, closure = _gripper_at(ctrl)
         closures.append(closure)
         ws.set_closure(closure)
         pts = _local_points(ws)
         s = data.site(TCP_SITE)
         R, p = s.xmat.reshape(3, 3), s.xpos
-        for g in pads:
+        for g in _pads(model):
             corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * model.geom_size[g]
             local = (corners @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g] - p) @ R
             assert np.abs(local[:, 0]).max() <= np.abs(pts[:, 0]).max() + 1e-4, (closure, local[:, 0])
             assert local[:, 2].max() <= pts[:, 2].max() + 1e-4
     assert closures[0] < 0.01 and closures[-1] > 0.95  # the whole stroke was covered
+
+
+def test_the_collision_guard_places_the_fingers_where_the_2f85_has_them():
+    """The guard's pads, placed for a measured closure, lie within a millimetre of the simulated gripper's
+    (in the wrist's frame), and a closed hand is farther from a box beside the open fingers."""
+    from safety.collision import CollisionGuard
+
+    guard = CollisionGuard(default_limits("ur5e"))
+    gm, gd = guard.model, guard.data
+    for ctrl in (0.0, 64.0, 128.0, 192.0, 255.0):
+        model, data, closure = _gripper_at(ctrl)
+        guard.set_closure(closure)
+        guard.clearance(HOME)
+        for g in _pads(model):
+            name = model.body(model.geom_bodyid[g]).name
+            w_sim, w_guard = model.body("wrist_3_link").id, gm.body("wrist_3_link").id
+            local_sim = data.xmat[w_sim].reshape(3, 3).T @ (data.xpos[model.body(name).id] - data.xpos[w_sim])
+            local_guard = gd.xmat[w_guard].reshape(3, 3).T @ (gd.xpos[gm.body(name).id] - gd.xpos[w_guard])
+            assert np.abs(local_sim - local_guard).max() < 1e-3, (ctrl, name)
+    guard.set_closure(0.0)
+    guard.clearance(HOME)
+    left, right = (gd.xpos[gm.body(f"gripper/{side}_pad").id].copy() for side in ("left", "right"))
+    centre = left + 0.025 * (left - right) / np.linalg.norm(left - right)  # 2.5 cm beyond the open left pad
+    beside = CollisionGuard(load_limits(None, "ur5e", {"workspace.keepout": [[*(centre - 0.004), *(centre + 0.004)]]}))
+    near_open = beside.clearance(HOME)[0]
+    beside.set_closure(1.0)
+    assert near_open < 0.025 and beside.clearance(HOME)[0] > near_open + 0.01
 
 
 def test_closure_places_the_points_and_anything_else_counts_as_open():
