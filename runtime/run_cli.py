@@ -84,11 +84,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--speed", default="", metavar="F|TASK=F,...",
                      help="pace the arm follows the policy at, a fraction of its demonstrations' in [0.1, 1], per "
                           "task family (a command's family: its closest trained instruction's). Default: the "
-                          "bundle's pace table (the shipped bundle: drawer_close 0.5, the rest 1: at half speed "
-                          "its drawer_close went from 12/20 to 19/20, and 10/20 to 18/20 on fresh seeds, while "
-                          "pick_place fell from 20/20 to 13/20; policy/EXPERIMENTS.md, \"Half speed\"). F: every "
-                          "family at F; TASK=F,...: those families (\"*=F\" the others), e.g. --speed "
-                          "drawer_close=0.4,*=0.8")
+                          "bundle's pace table (the shipped bundle: drawer_close 0.5, drawer_open 0.75, the rest "
+                          "1: so its drawers open 20/20 and close 19/20 on fresh seeds, against 12/20 and 10/20 "
+                          "at full speed, while pick_place at 0.5 falls from 20/20 to 13/20; "
+                          "policy/EXPERIMENTS.md, \"The pace per task family\"). F: every family at F; "
+                          "TASK=F,...: those families (\"*=F\" the others), e.g. --speed drawer_close=0.4,*=0.8")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)
