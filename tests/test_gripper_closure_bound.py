@@ -97,3 +97,21 @@ def test_the_controller_hands_the_bound_to_its_filter():
     assert (seen[:, 0] == seen[:, 1]).all()  # the filter's points follow the channel every cycle
     assert (seen[:, 1] <= seen[:, 2] + 1e-9).all()
     assert seen[-1, 1] == pytest.approx(0.5, abs=0.05)
+
+
+def test_the_gripper_is_asked_at_most_once_a_cycle():
+    """The bound and the empty-close check share one state read (the real driver's is a socket round trip)."""
+    rig = _rig()
+    channel = GripperChannel(rig.gripper, LIMITS, ControllerConfig(gripper_levels=(0.0, 1.0)))
+    asked = []
+    state = rig.gripper.state
+
+    def counted():
+        asked.append(rig.now_ns())
+        return state()
+
+    rig.gripper.state = counted
+    _feed(channel, rig, 0.0, 0.3)
+    _feed(channel, rig, 1.0, 2.0)  # closes on nothing: both the bound and the empty-close check ask
+    assert len(asked) >= 10 and len(asked) == len(set(asked))
+    assert channel.empty_closes == 1 and channel.closure_bound == 0.0  # reopened: down again at once

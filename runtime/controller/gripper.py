@@ -57,6 +57,7 @@ class GripperChannel:
         self.closure_bound = 0.0  # the least closure the fingers can have until the next command (0: open)
         self._closing_to: float | None = None  # the closure of a close whose fingers are still moving
         self._next_bound_check = 0.0
+        self._state_cache: tuple | None = None  # (cycle time, GripperState)
         self.levels = tuple(config.gripper_levels or BINARY)
         self.level: int | None = None  # index of the commanded level; None until the first command
         self.commands = 0
@@ -109,11 +110,12 @@ class GripperChannel:
             self.level = want
             self.commands += 1
             self._verified = False
+            self._next_check = now + SETTLE_S  # no verdict before the fingers move
             if position <= self.closure_bound:
                 self.closure_bound, self._closing_to = position, None
-            else:  # the bound rises as the gripper reports the fingers closing
+            else:  # the bound rises as the gripper reports the fingers closing, read with the verdict's state
                 self._closing_to = position
-                self._next_bound_check = now + SETTLE_S
+                self._next_bound_check = self._next_check
             return self.closed
         return None
 
@@ -123,11 +125,17 @@ class GripperChannel:
         if self._closing_to is None or now < self._next_bound_check:
             return
         self._next_bound_check = now + CHECK_PERIOD_S
-        s = self.gripper.state()
+        s = self._state(now)
         measured = float(s.position) if math.isfinite(s.position) else 0.0
         self.closure_bound = max(self.closure_bound, min(measured, self._closing_to))
         if not s.is_moving or measured >= self._closing_to:
             self._closing_to = None
+
+    def _state(self, now: float):
+        """The gripper's state, asked at most once per cycle (the bound and the empty-close check share it)."""
+        if self._state_cache is None or self._state_cache[0] != now:
+            self._state_cache = (now, self.gripper.state())
+        return self._state_cache[1]
 
     @property
     def closed(self) -> bool | None:
@@ -158,10 +166,10 @@ class GripperChannel:
     def _caught_nothing(self, now: float) -> bool:
         """Whether the standing close has stopped with nothing between the fingers (asks the gripper at most
         every CHECK_PERIOD_S, and not again once it reports an object: a slip later on is not caught)."""
-        if self._verified or now - self._edge_at < SETTLE_S or now < self._next_check:
+        if self._verified or now < self._next_check:
             return False
         self._next_check = now + CHECK_PERIOD_S
-        s = self.gripper.state()
+        s = self._state(now)
         self._verified = s.object_detected
         return not s.object_detected and not s.is_moving and s.position >= EMPTY_CLOSED
 
