@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from safety.workspace import clip_closure
+
 _CHAIN = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link")
 _FINGER_PARTS = ("driver", "coupler", "spring_link", "follower", "pad")
 TABLE_GEOM = "safety/table"
@@ -136,8 +138,7 @@ class CollisionGuard:
     # ---- the fingers ----------------------------------------------------------------------------------
     def set_closure(self, closure: float) -> None:
         """Place the fingers for this closure (0 open .. 1 closed; clipped, not a number: open)."""
-        c = float(closure) if isinstance(closure, (int, float)) and np.isfinite(closure) else 0.0
-        c = min(1.0, max(0.0, c))
+        c = clip_closure(closure)
         if c != self.closure:
             self.closure = c
             self._finger_q = np.array([np.interp(c, self._closures, a) for a in self._finger_angles.T])

@@ -56,7 +56,7 @@ class Workspace:
     def set_closure(self, closure: float) -> bool:
         """Place the finger points for the least closure the fingers can have (0 open .. 1 closed, clipped;
         anything not a number counts as open). Returns whether the points moved."""
-        c = _closure(closure)
+        c = clip_closure(closure)
         if c == self.closure:
             return False
         self.closure, self._grip = c, self._grip_at(c)
@@ -67,7 +67,7 @@ class Workspace:
         """min_slack of an fk.pose with the finger points placed for `closure` (the current ones kept)."""
         keep = self._grip
         try:
-            self._grip = self._grip_at(_closure(closure))
+            self._grip = self._grip_at(clip_closure(closure))
             return self.at(pose)[1]
         finally:
             self._grip = keep
@@ -264,7 +264,7 @@ class Workspace:
         return out
 
 
-def _closure(x) -> float:
+def clip_closure(x) -> float:
     """A closure in [0, 1]; anything not a finite number is open (0), the widest the fingers can be."""
     try:
         c = float(x)
@@ -306,4 +306,4 @@ def _common_face(box, pts):
     return face
 
 
-__all__ = ["Workspace"]
+__all__ = ["Workspace", "clip_closure"]
