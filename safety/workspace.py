@@ -65,23 +65,18 @@ class Workspace:
 
     def slack_at_closure(self, pose, closure: float) -> float:
         """min_slack of an fk.pose with the finger points placed for `closure` (the current ones kept)."""
-        keep = self._grip
-        try:
-            self._grip = self._grip_at(clip_closure(closure))
-            return self.at(pose)[1]
-        finally:
-            self._grip = keep
+        return self.min_slack(self.points((pose[0], pose[1], pose[2]), pose[3], self._grip_at(clip_closure(closure))))
 
     def _grip_at(self, c: float) -> tuple:
         return tuple(tuple(o + c * (k - o) for o, k in zip(po, pk)) for po, pk in zip(self._open, self._closed))
 
     # ---- points and slacks ----------------------------------------------------------------------------
-    def points(self, p, R):
-        """World positions of the TCP (first) and the gripper points."""
+    def points(self, p, R, grip=None):
+        """World positions of the TCP (first) and the gripper points (`grip`: other points in the TCP frame)."""
         px, py, pz = p
         r0, r1, r2, r3, r4, r5, r6, r7, r8 = R
         out = [p]
-        for x, y, z in self._grip:
+        for x, y, z in self._grip if grip is None else grip:
             out.append((px + r0 * x + r1 * y + r2 * z, py + r3 * x + r4 * y + r5 * z, pz + r6 * x + r7 * y + r8 * z))
         return out
 

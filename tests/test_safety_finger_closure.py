@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 from safety_filter_streams import HOME, make_filter
+from sim_hands import gripper_at, pad_corners_in_tcp, pad_geoms
 
 from safety.fastfk import FastKinematics
 from safety.limits import default_limits, load_limits
@@ -29,49 +30,17 @@ def _local_points(ws) -> np.ndarray:
     return np.array(ws.points((0.0, 0.0, 0.0), IDENTITY)[1:])
 
 
-def _gripper_at(ctrl: float):
-    """sim.robot's model with the 2F-85 closed on nothing by `ctrl` (0 open .. 255): (model, data, closure as
-    the sim gripper measures it)."""
-    import mujoco
-
-    from sim.robot import robot_spec
-    from sim.world import GRIPPER_MAX_DRIVER
-
-    model = robot_spec("ur5e").compile()
-    data = mujoco.MjData(model)
-    drivers = [model.jnt_qposadr[j] for j in range(model.njnt) if "driver" in model.joint(j).name]
-    data.qpos[:6] = HOME
-    data.ctrl[-1] = ctrl
-    for _ in range(1500):
-        mujoco.mj_step(model, data)
-    return model, data, float(np.clip(data.qpos[drivers].mean() / GRIPPER_MAX_DRIVER, 0.0, 1.0))
-
-
-def _pads(model):
-    from sim.robot import GRIPPER_PREFIX
-
-    return [g for g in range(model.ngeom) if model.geom_contype[g]
-            and model.body(model.geom_bodyid[g]).name.startswith(GRIPPER_PREFIX)
-            and "pad" in model.body(model.geom_bodyid[g]).name]
-
-
 def test_the_points_bound_the_2f85_pads_at_every_closure():
     """At each tenth of the stroke, the points placed for the measured closure reach as wide across the gap as
     the MuJoCo 2F-85's pads and as deep along the approach."""
-    from sim.robot import TCP_SITE
-
     ws = _ws()
     closures = []
     for ctrl in np.linspace(0.0, 255.0, 11):
-        model, data, closure = _gripper_at(ctrl)
+        model, data, closure = gripper_at(ctrl, HOME)
         closures.append(closure)
         ws.set_closure(closure)
         pts = _local_points(ws)
-        s = data.site(TCP_SITE)
-        R, p = s.xmat.reshape(3, 3), s.xpos
-        for g in _pads(model):
-            corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * model.geom_size[g]
-            local = (corners @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g] - p) @ R
+        for local in pad_corners_in_tcp(model, data):
             assert np.abs(local[:, 0]).max() <= np.abs(pts[:, 0]).max() + 1e-4, (closure, local[:, 0])
             assert local[:, 2].max() <= pts[:, 2].max() + 1e-4
     assert closures[0] < 0.01 and closures[-1] > 0.95  # the whole stroke was covered
@@ -85,10 +54,10 @@ def test_the_collision_guard_places_the_fingers_where_the_2f85_has_them():
     guard = CollisionGuard(default_limits("ur5e"))
     gm, gd = guard.model, guard.data
     for ctrl in (0.0, 64.0, 128.0, 192.0, 255.0):
-        model, data, closure = _gripper_at(ctrl)
+        model, data, closure = gripper_at(ctrl, HOME)
         guard.set_closure(closure)
         guard.clearance(HOME)
-        for g in _pads(model):
+        for g in pad_geoms(model):
             name = model.body(model.geom_bodyid[g]).name
             w_sim, w_guard = model.body("wrist_3_link").id, gm.body("wrist_3_link").id
             local_sim = data.xmat[w_sim].reshape(3, 3).T @ (data.xpos[model.body(name).id] - data.xpos[w_sim])

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from sim_hands import gripper_at, pad_corners_in_tcp
 
 from safety.fastfk import FastKinematics
 from safety.limits import GRIPPER_POINTS_2F85, default_limits, load_limits
@@ -81,30 +82,11 @@ def test_newton_ik_stays_on_the_seed_branch():
 def test_gripper_points_bound_the_2f85_fingers():
     """The default finger points reach at least as low (along the approach axis) as any finger collision
     geom of the MuJoCo 2F-85, open or closed, and as wide as the pads."""
-    import mujoco
-
-    from sim.robot import GRIPPER_PREFIX, TCP_SITE, robot_spec
-
-    model = robot_spec("ur5e").compile()
-    data = mujoco.MjData(model)
     pts = np.array(GRIPPER_POINTS_2F85)
     for closing in (0.0, 255.0):
-        mujoco.mj_resetData(model, data)
-        data.qpos[:6] = HOME
-        data.ctrl[-1] = closing
-        for _ in range(1500):
-            mujoco.mj_step(model, data)
-        s = data.site(TCP_SITE)
-        R, p = s.xmat.reshape(3, 3), s.xpos
+        model, data, _ = gripper_at(closing, HOME)
         deepest = -np.inf
-        for g in range(model.ngeom):
-            body = model.body(model.geom_bodyid[g]).name
-            if not (model.geom_contype[g] and body.startswith(GRIPPER_PREFIX) and "pad" in body):
-                continue
-            size = model.geom_size[g]
-            corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * size
-            world = corners @ data.geom_xmat[g].reshape(3, 3).T + data.geom_xpos[g]
-            local = (world - p) @ R
+        for local in pad_corners_in_tcp(model, data):
             deepest = max(deepest, local[:, 2].max())
             assert np.abs(local[:, 0]).max() <= np.abs(pts[:, 0]).max() + 1e-3
         assert deepest <= pts[:, 2].max() + 1e-4, (closing, deepest)
