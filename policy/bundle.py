@@ -32,10 +32,12 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from policy.action_frame import from_tcp, orthonormalize_rot6d
+from policy.action_frame import from_tcp, orthonormalize_rot6d, rotations
+from policy.config import AUX_TCP_SCALE
 from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORTED_VERSIONS, TEXT_DIM,  # noqa: F401
                                     BundleError, check_manifest, expected_graphs, need, goal_clause_of,
-                                    instruction_dim)
+                                    instruction_dim, release_input_of)
+from policy.goal_query import goal_query_spec
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.pace import bundle_pace
@@ -161,6 +163,7 @@ class Bundle:
         self.noise_scale = float(m.get("sampling", {}).get("noise_scale", 1.0))
         self._cache: dict[str, np.ndarray] = {}
         self.goal_clause, self.instruction_dim = goal_clause_of(m), instruction_dim(m)
+        self.release_input, self.goal_query = release_input_of(m), goal_query_spec(m)
         self._refs = np.zeros((0, self.instruction_dim), np.float32)
 
     def check_replan_every(self, n: int) -> None:
@@ -267,7 +270,7 @@ class Bundle:
 
     def act(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
             noise: np.ndarray | None = None, rng: np.random.Generator | None = None, trace: list | None = None,
-            stage: int = 0) -> np.ndarray:
+            stage: int = 0, release: np.ndarray | None = None) -> np.ndarray:
         """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
 
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
@@ -275,7 +278,37 @@ class Bundle:
         `trace`, if a list, receives cond then (x_t, t, predicted noise) per step (for parity checks).
         stage: grasp cycles completed since the command started (policy.stage.GraspCycles over the gripper's
         position request and measured position), read by a bundle with dims.stage_bins > 0, ignored by others.
+        release: (4,) a base-frame release point in metres and a flag, 1 = in place of the head's (the goal query,
+        policy/goal_query.py); only for a bundle with release_input.
         """
+        cond = self._encode(images, proprio, text_embedding, stage, release)[0]
+        if noise is None:
+            shape = (self.pred_horizon, self.action_dim)
+            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal(shape)
+        x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
+        if trace is not None:
+            trace.append(cond)
+        den = self.sessions["denoiser"]
+        for t, c, c_next in self._schedule:
+            out = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
+            if trace is not None:
+                trace.append((x, t, out))
+            x = self._step(x, out, c, c_next, self._clip).astype(np.float32)
+        a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
+        p = np.asarray(proprio, np.float32)
+        return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
+
+    def grasp_point(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
+                    stage: int = 0) -> np.ndarray:
+        """(3,) the aux head's grasp point for this observation and instruction, in the base frame [m] (the head
+        reads it relative to the gripper at the newest proprio step); only for a bundle with release_input."""
+        need(self.release_input, f"{self.root} has no aux_points output (exported without release_input)")
+        points = self._encode(images, proprio, text_embedding, stage, None)[1][0]
+        pose = np.asarray(proprio, np.float64)[-1, :9]
+        return (pose[:3] + rotations(pose[3:9]) @ (points[:3] * AUX_TCP_SCALE)).astype(np.float32)
+
+    def _encode(self, images, proprio, text_embedding, stage: int, release) -> list[np.ndarray]:
+        """The obs encoder's outputs (cond, and with release_input the head's aux_points) for checked inputs."""
         To, (H, W) = self.obs_horizon, self.image_size
         feeds = {}
         for c in self.cameras:
@@ -293,21 +326,14 @@ class Bundle:
         normalized = p * self.stats["proprio_scale"] + self.stats["proprio_offset"]
         feeds["proprio"] = with_stage(normalized, stage, self.stage_bins)[None].astype(np.float32)
         feeds["text_embedding"] = e[None]
-        cond = self.sessions["obs_encoder"].run(None, feeds)[0]
-        if noise is None:
-            shape = (self.pred_horizon, self.action_dim)
-            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal(shape)
-        x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
-        if trace is not None:
-            trace.append(cond)
-        den = self.sessions["denoiser"]
-        for t, c, c_next in self._schedule:
-            out = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
-            if trace is not None:
-                trace.append((x, t, out))
-            x = self._step(x, out, c, c_next, self._clip).astype(np.float32)
-        a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
-        return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
+        if self.release_input:
+            r = np.zeros(4, np.float32) if release is None else np.asarray(release, np.float32).reshape(-1)
+            if r.shape != (4,) or not np.all(np.isfinite(r)):
+                raise ValueError(f"release: expected finite (4,) = base-frame point [m] and flag, got {r.shape}")
+            feeds["release_point"] = r[None]
+        elif release is not None:
+            raise ValueError(f"{self.root} takes no release point (exported without release_input)")
+        return self.sessions["obs_encoder"].run(None, feeds)
 
     @property
     def sampler_steps(self) -> int:

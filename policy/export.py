@@ -46,6 +46,7 @@ import torch
 
 from policy.bundle import sha256_file
 from policy.config import TEXT_DIM, PolicyConfig
+from policy.graph_frames import with_release
 from policy.model import DiffusionPolicy, count_params, film_dim, prepare_images
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
@@ -108,11 +109,14 @@ def graph_specs(cfg: PolicyConfig) -> dict:
     """The I/O contract of every graph, as written to the manifest and checked by the loader."""
     To, Tp, Da, Dp, G = cfg.obs_horizon, cfg.pred_horizon, cfg.action_dim, cfg.proprio_input_dim, film_dim(cfg)
     H, W = cfg.image_size
+    release = ([_io("release_point", ["B", 4], "float32")], [_io("aux_points", ["B", cfg.aux_dim], "float32")]
+               ) if cfg.release_input else ([], [])
     return {
         "obs_encoder": {"file": "obs_encoder.onnx",
                         "inputs": [_io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in cfg.cameras]
-                        + [_io("proprio", ["B", To, Dp], "float32"), _io("text_embedding", ["B", cfg.text_input_dim], "float32")],
-                        "outputs": [_io("cond", ["B", G], "float32")]},
+                        + [_io("proprio", ["B", To, Dp], "float32"), _io("text_embedding", ["B", cfg.text_input_dim], "float32")]
+                        + release[0],
+                        "outputs": [_io("cond", ["B", G], "float32")] + release[1]},
         "denoiser": {"file": "denoiser.onnx",
                      "inputs": [_io("noisy_actions", ["B", Tp, Da], "float32"), _io("timestep", ["B"], "int64"),
                                 _io("cond", ["B", G], "float32")],
@@ -125,15 +129,23 @@ def graph_specs(cfg: PolicyConfig) -> dict:
 
 class _ObsGraph(torch.nn.Module):
     """obs_encoder.onnx: raw uint8 frames per camera, proprio, text -> cond = the denoiser's FiLM input
-    computed from the global cond once per chunk (ConditionalUnet1D.condition)."""
+    computed from the global cond once per chunk (ConditionalUnet1D.condition). With cfg.release_input also
+    release_point in (policy.graph_frames.with_release) and the head's aux_points out."""
 
     def __init__(self, model: DiffusionPolicy):
         super().__init__()
         self.model, self.cameras, self.crop = model, model.cfg.cameras, model.cfg.crop_size
 
     def forward(self, *args):
-        images = {c: prepare_images(x, self.crop) for c, x in zip(self.cameras, args)}
-        return self.model.unet.condition(self.model.encode(images, args[-2], args[-1]))
+        n = len(self.cameras)
+        images = {c: prepare_images(x, self.crop) for c, x in zip(self.cameras, args[:n])}
+        proprio, text = args[n], args[n + 1]
+        if not self.model.cfg.release_input:
+            return self.model.unet.condition(self.model.encode(images, proprio, text))
+        features = self.model.obs_encoder(images, proprio, text)
+        points = self.model.aux_points(features)
+        cond = self.model.cond_from(features, proprio, with_release(points, args[n + 2]))
+        return self.model.unet.condition(cond), points
 
 
 class _StepGraph(torch.nn.Module):
@@ -159,10 +171,11 @@ def write_policy_graphs(model: DiffusionPolicy, out_dir: Path, opset: int = OPSE
                for _ in cfg.cameras]
     ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_input_dim), torch.randn(1, cfg.text_input_dim)
     so, sd = specs["obs_encoder"], specs["denoiser"]
-    info = {"obs_encoder": _write_graph(_ObsGraph(model), (*ex_imgs, ex_p, ex_t), out_dir / so["file"], so, opset,
-                                        fp16)}
+    ex = (*ex_imgs, ex_p, ex_t) + ((torch.tensor([[0.1, 0.4, 0.1, 1.0]]),) if cfg.release_input else ())
+    info = {"obs_encoder": _write_graph(_ObsGraph(model), ex, out_dir / so["file"], so, opset, fp16)}
     with torch.no_grad():
-        cond = _ObsGraph(model)(*ex_imgs, ex_p, ex_t)
+        cond = _ObsGraph(model)(*ex)
+        cond = cond[0] if cfg.release_input else cond
     info["denoiser"] = _write_graph(_StepGraph(model), (torch.randn(1, cfg.pred_horizon, cfg.action_dim),
                                                         torch.tensor([5]), cond), out_dir / sd["file"], sd, opset, fp16)
     return info
@@ -176,32 +189,63 @@ PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
 def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Path | None = None, ema: bool = True,
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
            inference_steps: int | None = None, noise_scale: float | None = None,
-           text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None) -> dict:
-    """Export a training run (latest checkpoint, EMA weights) to a bundle directory; returns the manifest.
+           text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
+           goal_query: dict | None = None) -> dict:
+    """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
+    graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
+    manifest.
 
     inference_steps: DDIM steps the bundle samples with, instead of the run's config (the network is trained
     for every timestep, so this is an inference choice: more steps, smoother chunks, more latency).
     noise_scale: the sampling temperature, instead of the run's config (also an inference choice).
     text_encoder_from: copy the text encoder from this bundle instead of building it from the installed package.
-    pace: {task family or "*": speed} the runtime plays the chunks at (policy.pace; default every family at 1)."""
+    pace: {task family or "*": speed} the runtime plays the chunks at (policy.pace; default every family at 1,
+    or a bundle's own table).
+    goal_query: {"families": [...], "data": DIR, "ticks": n}: measure the goal query on DIR's episodes
+    (policy.goal_query_measure) and export the obs encoder with the release point input (config release_input)."""
+    from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
-    from policy.train import load_run_model
 
     run_dir = Path(run_dir)
-    model, cfg, training = load_run_model(run_dir, checkpoint, ema)
+    if is_bundle(run_dir):
+        model, normalizer, data_info, training, kept = _bundle_source(run_dir)
+        pace = kept if pace is None else pace
+    else:
+        from policy.train import load_run_model
+
+        model, _, training = load_run_model(run_dir, checkpoint, ema)
+        warm = read_record(run_dir)
+        if warm is not None:
+            training["warm_start"] = warm
+        normalizer = Normalizer.load(run_dir / "stats.npz")
+        data_info = json.loads((run_dir / "dataset.json").read_text())
+        if "gripper_levels" not in data_info:
+            data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
     overrides = {k: v for k, v in (("inference_steps", inference_steps), ("noise_scale", noise_scale))
                  if v is not None}
+    table = None
+    if goal_query is not None:
+        from policy.goal_query_measure import measure
+
+        check_pace_table({f: 1.0 for f in goal_query["families"]}, data_info.get("tasks", []), "--goal-query")
+        table = measure(model, normalizer, goal_query["data"], list(goal_query["families"]),
+                        goal_query.get("ticks", 3))
+        overrides["release_input"] = True
     if overrides:
-        model.cfg = load_policy_config(cfg, overrides)
-    warm = read_record(run_dir)
-    if warm is not None:
-        training["warm_start"] = warm
-    normalizer = Normalizer.load(run_dir / "stats.npz")
-    data_info = json.loads((run_dir / "dataset.json").read_text())
-    if "gripper_levels" not in data_info:
-        data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
+        model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
-                        text_encoder_from, pace)
+                        text_encoder_from, pace, table)
+
+
+def _bundle_source(bundle_dir: Path):
+    """(model, normalizer, data info, training record, pace) of a bundle to export again."""
+    from policy.bundle_import import model_from_bundle
+
+    model, normalizer, m = model_from_bundle(bundle_dir)
+    data_info = {"tasks": m.get("tasks", []), "instructions": m.get("instructions", []), **m.get("data", {})}
+    training = {**m.get("training", {}), "reexported_from": {"bundle": str(bundle_dir), "created": m.get("created"),
+                                                             "import": m["imported"]}}
+    return model, normalizer, data_info, training, m.get("pace", {})
 
 
 def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
@@ -222,8 +266,10 @@ def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
 def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir: str | Path,
                  data_info: dict | None = None, training: dict | None = None, opset: int = OPSET,
                  cache_dir: str | Path | None = None, fp16_weights: bool = True,
-                 text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None) -> dict:
+                 text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
+                 goal_query: dict | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
+    goal_query: the manifest's table (policy.goal_query_measure), for a model with release_input.
 
     fp16_weights: store the policy graphs' weights as float16; `model` itself is left unrounded."""
     import tokenizers
@@ -261,7 +307,8 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                          "execute_from": cfg.obs_horizon - 1, "control_hz": 10.0},
             "dims": {"proprio": cfg.proprio_dim, "action": cfg.action_dim, "text": TEXT_DIM,
                      "instruction": cfg.text_input_dim, "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim,
-                     "stage_bins": cfg.stage_bins},
+                     "stage_bins": cfg.stage_bins, **({"aux": cfg.aux_dim} if cfg.release_input else {})},
+            "release_input": cfg.release_input,
             "instruction": {"goal_clause": cfg.text_goal},
             "action_layout": {"position": [0, 3], "rot6d": [3, 9], "gripper": [9, 10], "frame": cfg.action_frame},
             "cameras": list(cfg.cameras), "image_size": list(cfg.image_size), "crop_size": list(cfg.crop_size),
@@ -274,7 +321,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                           "spacing": "trailing"},
             SAMPLER_KEY[cfg.objective]: schedule_for(model), "sampling": {"noise_scale": cfg.noise_scale},
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
-            "pace": pace,
+            "pace": pace, **({"goal_query": goal_query} if goal_query else {}),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),
             "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond)

@@ -34,3 +34,12 @@ def release_to_tcp(points: torch.Tensor, proprio: torch.Tensor, proprio_scale: t
     pose = (proprio[:, -1, :9] - proprio_offset[:9]) / proprio_scale[:9]
     rel = point_to_tcp(points[:, 3:6] * AUX_TCP_SCALE, pose) / AUX_TCP_SCALE
     return torch.cat([points[:, :3], rel, points[:, 6:]], dim=1)
+
+
+def with_release(points: torch.Tensor, release: torch.Tensor) -> torch.Tensor:
+    """The head's points (B, >= 6; release point in the base frame over AUX_TCP_SCALE, aux_release_frame base)
+    with the release point replaced where release (B, 4) = (x, y, z in metres, base frame; flag) has flag 1:
+    the goal query's point (policy/goal_query.py). Flag 0 leaves the head's, bit for bit."""
+    given = release[:, 3:4] > 0.5
+    rel = torch.where(given, release[:, :3] / AUX_TCP_SCALE, points[:, 3:6])
+    return torch.cat([points[:, :3], rel, points[:, 6:]], dim=1)

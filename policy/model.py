@@ -278,11 +278,13 @@ class DiffusionPolicy(nn.Module):
         """The denoiser's global cond (B, G): features, then with aux_condition the head's points (training: `loss`)."""
         return self.cond_from(self.obs_encoder(images, proprio, text), proprio)
 
-    def cond_from(self, features: torch.Tensor, proprio: torch.Tensor) -> torch.Tensor:
-        """Obs encoder features (B, G') and their normalized proprio (B, To, Dp) -> the inference cond (B, G)."""
+    def cond_from(self, features: torch.Tensor, proprio: torch.Tensor, points: torch.Tensor | None = None
+                  ) -> torch.Tensor:
+        """Obs encoder features (B, G') and their normalized proprio (B, To, Dp) -> the inference cond (B, G);
+        `points` (B, aux_dim) in the head's units instead of the head's own (policy.graph_frames.with_release)."""
         if not self.cfg.aux_condition:
             return features
-        points = self.points_for_denoiser(self.aux_points(features), proprio)
+        points = self.points_for_denoiser(self.aux_points(features) if points is None else points, proprio)
         return torch.cat([self.shown_features(features), points], dim=1)
 
     def set_proprio_stats(self, normalizer) -> None:

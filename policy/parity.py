@@ -84,7 +84,30 @@ def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str
             worst["step_max_abs_err"] = max(worst["step_max_abs_err"], float(np.abs(ref.numpy() - eps).max()))
         ref_chunk = predict_chunk(model, normalizer, images, proprio, text, noise, stage)
         worst["chunk_max_abs_err"] = max(worst["chunk_max_abs_err"], float(np.abs(ref_chunk - chunk).max()))
+    if model.cfg.release_input:
+        worst.update(_release_parity(model, normalizer, b, trials, seed))
     worst.update(trials=trials, step_tol=STEP_TOL, chunk_tol=CHUNK_TOL)
-    if worst["step_max_abs_err"] > STEP_TOL or worst["cond_max_abs_err"] > STEP_TOL or worst["chunk_max_abs_err"] > CHUNK_TOL:
+    over = [k for k in ("cond_max_abs_err", "step_max_abs_err", "release_cond_max_abs_err", "aux_points_max_abs_err")
+            if worst.get(k, 0.0) > STEP_TOL]
+    if over or worst["chunk_max_abs_err"] > CHUNK_TOL:
         raise ExportError(f"exported graphs disagree with torch: {worst}")
+    return worst
+
+
+def _release_parity(model: DiffusionPolicy, normalizer: Normalizer, b, trials: int, seed: int) -> dict:
+    """A bundle with release_input: its cond with a given release point and its aux_points output vs torch."""
+    from policy.graph_frames import with_release
+
+    worst = {"release_cond_max_abs_err": 0.0, "aux_points_max_abs_err": 0.0}
+    rng = np.random.default_rng(seed + 1)
+    for images, proprio, text, _, stage in _random_observations(model.cfg, normalizer, trials, seed):
+        release = np.append(rng.uniform([-0.4, 0.2, 0.0], [0.4, 0.8, 0.3]), 1.0).astype(np.float32)
+        cond, points = b._encode(images, proprio, text, stage, release)
+        imgs = {c: prepare_images(torch.from_numpy(images[c])[None], model.cfg.crop_size) for c in model.cfg.cameras}
+        p = torch.from_numpy(with_stage(normalizer.normalize_proprio(proprio), stage, model.cfg.stage_bins))[None]
+        features = model.obs_encoder(imgs, p, torch.from_numpy(text)[None])
+        head = model.aux_points(features)
+        ref = model.unet.condition(model.cond_from(features, p, with_release(head, torch.from_numpy(release)[None])))
+        worst["release_cond_max_abs_err"] = max(worst["release_cond_max_abs_err"], float(np.abs(ref.numpy() - cond).max()))
+        worst["aux_points_max_abs_err"] = max(worst["aux_points_max_abs_err"], float(np.abs(head.numpy() - points).max()))
     return worst

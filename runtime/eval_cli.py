@@ -66,6 +66,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="pace the arm follows the policy's chunks at per task family, a fraction of the recorded "
                          "one in [0.1, 1] (default: the bundle's pace table; 0.5: actions and ticks 0.2 s apart, "
                          "observations as trained; TASK=F,... for some families; see sudd run --speed)")
+    ev.add_argument("--no-goal-query", action="store_true",
+                    help="condition on the head's own release point where the bundle's goal query would replace it "
+                         "(policy/goal_query.py): to measure what the query buys on the same seeds")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -121,7 +124,7 @@ def _eval(args) -> int:
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
-                "latency_ms": args.latency_ms, "pace": pace.table,
+                "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
@@ -240,7 +243,8 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
-                                 speed=Pace(s.get("pace", {})).speed(job["task"])).record()
+                                 speed=Pace(s.get("pace", {})).speed(job["task"]),
+                                 goal_query=s.get("goal_query", True)).record()
         if strip is not None and not out["success"]:
             title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
                      f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")

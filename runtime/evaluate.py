@@ -72,6 +72,7 @@ class EpisodeOutcome:
     drawer_end: float | None = None  # and at the end
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
+    goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -83,14 +84,17 @@ class EpisodeOutcome:
 def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdout: Holdout = Holdout(),
                        command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
-                       controller: ControllerConfig | None = None, observer=None, speed: float = 1.0
-                       ) -> EpisodeOutcome:
+                       controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
+                       goal_query: bool = True) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
     of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos); `speed` the
     pace the arm follows the chunks at (runtime.pace: ticks and actions 1 / (control_hz x speed) apart, the
-    observations still 1 / control_hz)."""
+    observations still 1 / control_hz); `goal_query` False: the head's own release point, where the bundle's
+    goal query would replace it (policy.goal_query)."""
+    from policy.goal_query import GoalQuery
+
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
@@ -103,6 +107,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         command = family.paraphrase(inst, np.random.default_rng([seed, 7]))
     text = command or ep.instruction
     emb = bundle.embed(text)
+    query = GoalQuery(bundle, text, task, enabled=goal_query)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -143,7 +148,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
-                actions = bundle.act(images, proprio, emb, rng=rng, stage=stage)[bundle.execute]
+                release = query.release(images, proprio, stage)
+                given = {} if release is None else {"release": release}  # a policy without the query takes none
+                actions = bundle.act(images, proprio, emb, rng=rng, stage=stage, **given)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s
@@ -161,6 +168,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
         out.grasp_cycles = cycles.count
+        if query.point is not None:
+            out.goal_point = [round(float(v), 4) for v in query.point]
         if not out.success:
             out.target_end = progress.target_end(inst)
         out.target_lets_go = progress.target_lets_go

@@ -63,6 +63,9 @@ class PolicyNodeConfig:
     # "" the bundle's table; "F" every family at F; "TASK=F,..." those families. Ticks and actions
     # 1 / (hz x speed) apart; the observation history stays 1 / hz apart, as in training.
     speed: str = ""
+    # Ask the head where the object a command puts something on is, for the families the bundle's manifest
+    # lists (policy/goal_query.py); false: the head's own release point.
+    goal_query: bool = True
 
 
 CONFIG = PolicyNodeConfig
@@ -136,6 +139,7 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
+    from policy.goal_query import GoalQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.pace import action_period_ns, command_speed, resolve_pace
@@ -187,7 +191,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
-        current: dict = {"text": None, "emb": None}
+        current: dict = {"text": None, "emb": None, "query": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -206,17 +210,20 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                 tag = f"[{cid}] " if cid else ""
                 if ok:
                     report["accepted"] += 1
-                    current.update(text=text, emb=bundle.embed(text))
                     cycles.reset()  # a new task starts at its first grasp
                     task, speed = command_speed(pace, best)
+                    current.update(text=text, emb=bundle.embed(text),
+                                   query=GoalQuery(bundle, text, task, enabled=cfg.goal_query))
                     dt_ns = action_period_ns(data_hz, speed)
                     hz = 1e9 / dt_ns
+                    q = current["query"]
+                    asked = f"; where to put it asked as '{q.swapped}'" if q.active else ""
                     event("command_accepted", "info", f"{tag}accepted '{text}' (closest trained instruction "
                                                       f"'{best}', cosine {cos:.2f}; {task or 'no known family'} "
-                                                      f"at speed {speed:g})", cosine=cos, speed=speed)
+                                                      f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
-                    current.update(text=None, emb=None)
+                    current.update(text=None, emb=None, query=None)
                     why = ("the bundle records no trained instructions" if best is None else
                            f"closest trained instruction '{best}' has cosine {cos:.2f} < "
                            f"{cfg.similarity_threshold:.2f}")
@@ -259,8 +266,9 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     t0 = time.perf_counter()
                     # g: the newest step's (position, request), as training counts from the recorded steps
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
-                    a = bundle.act(imgs, np.asarray(prop, np.float32), current["emb"], rng=rng,
-                                   stage=stage)[bundle.execute]
+                    prop = np.asarray(prop, np.float32)
+                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=stage,
+                                   release=current["query"].release(imgs, prop, stage))[bundle.execute]
                     infer_ms.append((time.perf_counter() - t0) * 1e3)
                     tk = (t_obs + dt_ns * (1 + np.arange(len(a)))).astype(np.int64)
                     pub_chunk.publish(m.ActionChunk(actions=a.astype(np.float64), times_ns=tk, obs_time_ns=int(t_obs)))

@@ -1,0 +1,130 @@
+"""The goal query: where the object a command puts something on is, asked of the policy's own aux head as the
+object it would grasp if the roles were swapped.
+
+Why: a policy conditioned on its head's grasp and release points (aux_condition) finds the block it is told to
+pick up (stack: 3.6 cm off on an episode's first frames) but not the block to put it on (10.2 cm off on the same
+frames; 8-14 cm while carrying): MiniLM mean-pools the sentence, so the roles of "the red block" and "the blue
+block" are barely in it, and the goal clause alone has not taught the head the second block. Asked "stack the
+blue block on the red block" about the same first frames, the head's grasp point is the blue block, 3.3 cm off
+the release point once a fixed offset (the release's height over the grasp) is added. In closed loop on the seen
+seeds 100000-100019 the shipped bundle stacked 1/20 with its head's release point, 5/20 with this one, 10/20 with
+the sim's true one (policy/EXPERIMENTS.md, "The goal query").
+
+How: per command of a family the bundle's manifest lists (`goal_query`), `role_swap` exchanges the object phrase
+before the goal clause with the one in it; for the first `ticks` inferences the head reads the swapped sentence
+(obs_encoder.onnx with its release flag off), and the median of its grasp points, in the base frame, plus
+`offset_m` is held for the rest of the command and given to every inference as the release point
+(`Bundle.act(release=...)`): the object is on the table at rest at the start, and later frames (the arm over it,
+an object in the fingers) are not scenes the swapped sentence was trained on (measured: 13 cm off while carrying).
+
+Torch-free: the runtime's policy node and `sudd eval` use it through the bundle. The offset is measured when the
+bundle is exported (policy/goal_query_measure.py) and recorded with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from policy.instruction import goal_clause
+
+ARTICLES = ("the", "a", "an")
+MAX_OFFSET_M = 0.3  # an offset further than this from the grasp point is no "height over it": a bad measurement
+MAX_TICKS = 20
+
+
+def _phrase_after_article(words: list[str]) -> int | None:
+    """Index of the first word after the last article in `words`, or None."""
+    for i in range(len(words) - 1, -1, -1):
+        if words[i].lower() in ARTICLES:
+            return i + 1 if i + 1 < len(words) else None
+    return None
+
+
+def role_swap(text: str) -> str | None:
+    """The command with its two object phrases exchanged ("put the red block on top of the blue block" -> "put
+    the blue block on top of the red block"), or None where it does not name two: no goal clause, or no object
+    phrase before it that ends in the goal's noun (the goal's last word; "set the red block down on the blue
+    block" keeps "down" where it is)."""
+    clause = goal_clause(text)
+    if clause is None:
+        return None
+    words = text.strip().split()
+    cw = clause.split()
+    head = words[:len(words) - len(cw)]
+    g = _phrase_after_article(cw)
+    x0 = _phrase_after_article(head)
+    if g is None or x0 is None:
+        return None
+    goal = cw[g:]
+    noun = goal[-1].lower().strip(",.;!?")
+    ends = [i for i in range(x0, len(head)) if head[i].lower().strip(",.;!?") == noun]
+    if not ends:
+        return None
+    x1 = ends[0] + 1
+    obj = head[x0:x1]
+    swapped = head[:x0] + goal + head[x1:] + cw[:g] + obj
+    return " ".join(swapped)
+
+
+@dataclass(frozen=True)
+class GoalQuerySpec:
+    """The manifest's `goal_query`: which families use it, the offset from the swapped grasp point to the
+    release point (base frame, metres) and for how many first inferences the head is asked."""
+
+    families: tuple[str, ...]
+    offset_m: tuple[float, float, float]
+    ticks: int
+
+
+def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
+    """The validated `goal_query` of a manifest, None where it has none; a ValueError names the field."""
+    q = manifest.get("goal_query")
+    if q is None:
+        return None
+    if not isinstance(q, dict):
+        raise ValueError(f"manifest goal_query: expected a table, got {type(q).__name__}")
+    if not manifest.get("release_input", False):
+        raise ValueError("manifest goal_query needs release_input true: the obs encoder must take the release point")
+    families, known = q.get("families"), set(manifest.get("tasks") or [])
+    if not isinstance(families, list) or not families or not all(isinstance(f, str) and f in known for f in families):
+        raise ValueError(f"manifest goal_query.families {families!r}: expected a non-empty list of the bundle's "
+                         f"task families {sorted(known)}")
+    off = q.get("offset_m")
+    ok = (isinstance(off, list) and len(off) == 3 and all(isinstance(v, (int, float)) for v in off)
+          and np.all(np.isfinite(off)) and float(np.linalg.norm(off)) <= MAX_OFFSET_M)
+    if not ok:
+        raise ValueError(f"manifest goal_query.offset_m {off!r}: expected 3 finite numbers (metres), at most "
+                         f"{MAX_OFFSET_M} m long")
+    ticks = q.get("ticks")
+    if not (isinstance(ticks, int) and 1 <= ticks <= MAX_TICKS):
+        raise ValueError(f"manifest goal_query.ticks {ticks!r}: expected an integer in [1, {MAX_TICKS}]")
+    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks)
+
+
+class GoalQuery:
+    """One command's goal query (module doc); inactive (`release` None) where the bundle has none, the family is
+    not listed, the command names no two objects, or `enabled` is False."""
+
+    def __init__(self, bundle, text: str, family: str | None, enabled: bool = True):
+        spec = getattr(bundle, "goal_query", None)  # a torch stand-in (policy.oracle_eval) has none
+        swapped = role_swap(text) if enabled and spec is not None and family in spec.families else None
+        self.bundle, self.spec, self.swapped = bundle, spec, swapped
+        self._query = None if swapped is None else bundle.embed(swapped)
+        self._points: list[np.ndarray] = []
+        self.point: np.ndarray | None = None
+
+    @property
+    def active(self) -> bool:
+        return self._query is not None
+
+    def release(self, images: dict, proprio: np.ndarray, stage: int = 0) -> np.ndarray | None:
+        """The (4,) release_point input for this inference (x, y, z base frame, flag 1), or None (the head's)."""
+        if self._query is None:
+            return None
+        if len(self._points) < self.spec.ticks:
+            grasp = self.bundle.grasp_point(images, proprio, self._query, stage)
+            self._points.append(grasp + np.asarray(self.spec.offset_m))
+            self.point = np.median(np.stack(self._points), axis=0)
+        return np.append(self.point, 1.0).astype(np.float32)

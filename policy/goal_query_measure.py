@@ -1,0 +1,84 @@
+"""The goal query's offset and its error, measured on recorded episodes when a bundle is exported
+(`sudd export ... --goal-query FAMILY --goal-query-data DATA`); the query itself is policy/goal_query.py.
+
+For every verified episode of the families whose command names two objects, the torch policy's head is asked
+the role-swapped command about the episode's first `ticks` frames, as the runtime asks it, and the median of
+its grasp points (base frame) is compared with the recorded release point: the offset is the median of
+(release - that point) over the episodes. Its error is measured two-fold (the offset fitted on every other
+episode and scored on the rest, then the other way), against the head's own release point on the same frames,
+so the manifest says what the query buys on episodes the offset was not fitted on. Measure on data the policy
+did not train on: a head grounds the scenes it trained on better than new ones.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import default_collate
+
+from policy.action_frame import rotations
+from policy.config import AUX_TCP_SCALE
+from policy.goal_query import MAX_OFFSET_M, MAX_TICKS, role_swap
+from policy.instruction import embed_instructions
+
+
+def _base(points_tcp: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    return pose[:3] + rotations(pose[3:9]) @ (points_tcp * AUX_TCP_SCALE)
+
+
+@torch.no_grad()
+def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedder=None) -> dict:
+    """The manifest's goal_query table for `model` on `data` (module doc); a ValueError when no episode of
+    `families` has a command with two objects."""
+    from policy.data import PolicyDataset, finish_images
+
+    if not 1 <= int(ticks) <= MAX_TICKS:
+        raise ValueError(f"goal query ticks {ticks}: expected an integer in [1, {MAX_TICKS}]")
+    cfg = model.cfg
+    if not (cfg.aux_condition and cfg.aux_release_frame == "base" and cfg.aux_target_frame == "tcp"):
+        raise ValueError("the goal query replaces the head's base-frame release point: it needs a policy with "
+                         f"aux_condition, aux_release_frame 'base' and aux_target_frame 'tcp' (this one: "
+                         f"{cfg.aux_condition}, {cfg.aux_release_frame!r}, {cfg.aux_target_frame!r})")
+    if embedder is None:
+        from policy.text import default_embedder
+
+        embedder = default_embedder()
+    ds = PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
+                       max_cache_bytes=0)
+    first: dict[int, list[int]] = {}
+    for i, (k, s) in enumerate(ds.index):
+        if ds.tasks[k] in families and role_swap(ds.instructions[k]) and 0 <= s + cfg.obs_horizon - 1 < ticks:
+            first.setdefault(k, []).append(i)
+    if not first:
+        raise ValueError(f"{data}: no verified episode of {', '.join(families)} whose command names two objects "
+                         "(policy.goal_query.role_swap); measure on data of those families")
+    model.eval()
+    queried, head_release, truth = [], [], []
+    for k, rows in sorted(first.items()):
+        batch = finish_images(default_collate([ds[i] for i in rows]))
+        swapped = torch.from_numpy(embed_instructions(embedder, [role_swap(ds.instructions[k])], cfg.text_goal))
+        grasp = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"],
+                                                   swapped.expand(len(rows), -1)))[:, :3].numpy()
+        own = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"], batch["text"]))[:, 3:6].numpy()
+        steps = [ds._newest_step(i)[1] for i in rows]
+        queried.append(np.median([_base(g, ds.tcp_pose[k][t]) for g, t in zip(grasp, steps)], axis=0))
+        head_release.append(np.median(own * AUX_TCP_SCALE, axis=0))
+        truth.append(ds.aux_points[k][steps[0]][1])
+    queried, head_release, truth = np.stack(queried), np.stack(head_release), np.stack(truth)
+    offset = np.median(truth - queried, axis=0)
+    if float(np.linalg.norm(offset)) > MAX_OFFSET_M:
+        raise ValueError(f"goal query offset {np.round(offset, 3).tolist()} m is longer than {MAX_OFFSET_M} m: the "
+                         "head's swapped grasp points are not near the release points; no goal query for this policy")
+    halves = np.arange(len(truth)) % 2 == 0
+    errors = np.empty(len(truth))
+    for fit in (halves, ~halves):  # two-fold: each half scored with the offset of the other
+        errors[~fit] = np.linalg.norm(queried[~fit] + np.median(truth[fit] - queried[fit], axis=0) - truth[~fit], axis=1)
+    head = np.linalg.norm(head_release - truth, axis=1)
+    from datagen.store import Dataset
+
+    return {"families": list(families), "offset_m": [round(float(v), 4) for v in offset], "ticks": int(ticks),
+            "measured": {"data": str(data), "content_hash": Dataset(data).content_hash(), "episodes": len(truth),
+                         "release_cm_median": round(float(np.median(errors)) * 100, 2),
+                         "release_cm_p75": round(float(np.percentile(errors, 75)) * 100, 2),
+                         "head_release_cm_median": round(float(np.median(head)) * 100, 2),
+                         "head_release_cm_p75": round(float(np.percentile(head, 75)) * 100, 2)}}
