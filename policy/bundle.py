@@ -9,6 +9,8 @@ policy.bundle_manifest.
     best, cos = bundle.task_similarity("put the red block in the bowl")   # refuse a command far from training
     chunk = bundle.act({"scene": s, "wrist": w}, proprio, emb, rng=rng)   # (Tp, 10) absolute targets
     todo = chunk[bundle.execute]                             # the Ta actions to run now (rows To-1 .. To-1+Ta-1)
+    query = GoalQuery(bundle, text, family)                  # policy.goal_query: where a stack goes, if the bundle asks
+    chunk = bundle.act(images, proprio, emb, release=query.release(images, proprio))
 
 Chunk row k is the target for control step (now - (To-1) + k) at `control_hz`: row To-1 is "now".
 Validation at load, each failure a BundleError with the reason: missing or altered files (size, sha256),
@@ -344,5 +346,6 @@ class Bundle:
         return {"path": str(self.root), "format_version": m["format_version"], "opset": m["opset"],
                 "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
                 "instructions": len(self.instructions), "stage_bins": self.stage_bins, "pace": self.pace.table,
+                "goal_query": list(self.goal_query.families) if self.goal_query else [],
                 "data_hash": m.get("data", {}).get("content_hash"), "params": m.get("params"),
                 "bytes": {k: v["bytes"] for k, v in m["files"].items()}}

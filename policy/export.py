@@ -11,7 +11,9 @@ Bundle layout (format "sudd-policy-bundle", version 1):
     obs_encoder.onnx     image_<camera> uint8 (B,To,H,W,3) full frames, proprio (B,To,Dp) normalized (Dp: the
                          recorded proprio, then dims.stage_bins one-hot grasp-cycle classes, policy.stage),
                          text_embedding (B,I) -> cond (B,G); the centre crop and /255 are inside the graph;
-                         I = 384, or 768 with "instruction": {"goal_clause": true} (policy.instruction)
+                         I = 384, or 768 with "instruction": {"goal_clause": true} (policy.instruction);
+                         with "release_input": true also release_point (B,4) in and aux_points (B,dims.aux) out
+                         (the goal query, policy/goal_query.py; its table is the manifest's "goal_query")
     denoiser.onnx        noisy_actions (B,Tp,Da), timestep (B,) int64, cond (B,G) -> noise_pred (B,Tp,Da)
     text_encoder.onnx    input_ids, attention_mask (B,L) int64 -> embedding (B,384), weight-only int8 MiniLM
     tokenizer/           tokenizer.json (+ vocab and configs) for `tokenizers`

@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 
 from sim.state import StateView
-from sim.tasks.drawer import drawer_fraction
+from sim.tasks.drawer import CABINET, drawer_fraction
 from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
@@ -159,6 +159,8 @@ class GraspProgress:
             return "held"
         goal = inst.params.get("bin")
         bins = [f"bin_{name}" for name, _ in inst.params.get("bins", [])]
+        if not goal and CABINET_PARAM in inst.params:  # drawer_put: the drawer is the goal (a shut one too)
+            return "goal" if view.inside(self.target, CABINET) else "outside"
         if not goal:
             return "released"
         if view.inside(self.target, goal):

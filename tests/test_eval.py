@@ -245,6 +245,11 @@ def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
     view.inside = lambda obj, container: container == "bin_right"
     assert p.target_end(inst) == "wrong_bin"
     assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
+    drawer_put = SimpleNamespace(params={"target": "obj0", "cabinet": {}})  # its goal is the drawer
+    view.inside = lambda obj, container: container == "cabinet"
+    assert p.target_end(drawer_put) == "goal"
+    view.inside = lambda obj, container: False
+    assert p.target_end(drawer_put) == "outside"
 
 
 def test_each_close_before_the_grasp_says_how_far_off_and_how_turned_it_was(monkeypatch):
