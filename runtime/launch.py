@@ -67,7 +67,8 @@ def bundle_manifest(path) -> dict:
 
 
 def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "off", command: str = "",
-              robot: str = "ur5", replan_every: int = 1, speed: str = "", **robot_overrides) -> list[NodeSpec]:
+              robot: str = "ur5", replan_every: int = 1, speed: str = "", goal_query: bool = True,
+              **robot_overrides) -> list[NodeSpec]:
     """robot node (sim twins + cameras matching the bundle) + policy node. The scene keeps the bundle's
     held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do."""
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -78,12 +79,14 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
     rcfg = RobotNodeConfig(task=task, seed=seed, dr=dr, cameras=tuple(man["cameras"]),
                            image_size=tuple(man["image_size"]), holdout_colors=tuple(held.get("colors", ())),
                            holdout_shapes=tuple(held.get("shapes", ())), **robot_overrides)
-    pcfg = PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed)
+    pcfg = PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
+                            goal_query=goal_query)
     return [NodeSpec(ROBOT, "runtime.nodes.robot_node", rcfg), NodeSpec("policy", "runtime.nodes.policy_node", pcfg)]
 
 
 def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], allow_motion: bool = False,
-                   command: str = "", replan_every: int = 1, speed: str = "", **robot_overrides) -> list[NodeSpec]:
+                   command: str = "", replan_every: int = 1, speed: str = "", goal_query: bool = True,
+                   **robot_overrides) -> list[NodeSpec]:
     """robot node on URRtdeArm + Robotiq2F85, one camera node per bundle camera, the policy node."""
     from runtime.nodes.camera_node import CameraNodeConfig
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -99,7 +102,7 @@ def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], a
                               CameraNodeConfig(name=cam, serial=camera_serials[cam])))
     specs.append(NodeSpec("policy", "runtime.nodes.policy_node",
                           PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every,
-                                           speed=speed)))
+                                           speed=speed, goal_query=goal_query)))
     return specs
 
 
@@ -108,12 +111,14 @@ def answers(event, command_id: str) -> bool:
     return event.kind.startswith("command_") and event.message.startswith(f"[{command_id}]")
 
 
-def policy_stack(bundle: str, command: str = "", replan_every: int = 1, speed: str = "") -> list[NodeSpec]:
+def policy_stack(bundle: str, command: str = "", replan_every: int = 1, speed: str = "",
+                 goal_query: bool = True) -> list[NodeSpec]:
     """The policy node alone: for a computer that joins the robot's bus with `--connect` (a GPU box)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
 
     return [NodeSpec("policy", "runtime.nodes.policy_node",
-                     PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed))]
+                     PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
+                                      goal_query=goal_query))]
 
 
 def node_kind(spec: NodeSpec) -> str:

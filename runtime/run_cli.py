@@ -89,6 +89,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "at full speed, while pick_place at 0.5 falls from 20/20 to 13/20; "
                           "policy/EXPERIMENTS.md, \"The pace per task family\"). F: every family at F; "
                           "TASK=F,...: those families (\"*=F\" the others), e.g. --speed drawer_close=0.4,*=0.8")
+    run.add_argument("--no-goal-query", action="store_true",
+                     help="condition on the policy's own release point where the bundle asks its head where a "
+                          "stack goes (the manifest's goal_query; policy/goal_query.py: the shipped bundle stacks "
+                          "8/20 with it, 1/20 without)")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)
@@ -159,14 +163,15 @@ def _run(args) -> int:
         robot["limits_file"] = str(args.limits.resolve())
     if args.sim:
         specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr, replan_every=args.replan_every,
-                          speed=args.speed, **robot)
+                          speed=args.speed, goal_query=not args.no_goal_query, **robot)
     elif args.robot_ip:
         serials = dict(s.split("=", 1) for s in args.camera_serial if "=" in s)
         specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion,
-                               replan_every=args.replan_every, speed=args.speed, **robot)
+                               replan_every=args.replan_every, speed=args.speed, goal_query=not args.no_goal_query,
+                               **robot)
     else:
         specs = policy_stack(str(bundle), command=args.command or "", replan_every=args.replan_every,
-                             speed=args.speed)
+                             speed=args.speed, goal_query=not args.no_goal_query)
     specs = [s for s in specs if node_kind(s) in kinds]
     la = Launcher(specs, hub=args.hub, robot_name=args.robot, connect=args.connect)
     succeeded = {"v": False}

@@ -257,3 +257,18 @@ def test_an_episode_asks_the_swapped_command_then_conditions_every_chunk_on_the_
     other = _Still(families=("stack",))  # the family the episode is of is not listed
     run_policy_episode(other, "pick_place", 100_003, command=STACK, time_limit_factor=0.05, latency_s=0.006)
     assert not other.asked and all(r is None for r in other.releases)
+
+
+def test_the_goal_query_switch_reaches_the_policy_node_of_every_stack(tmp_path):
+    from runtime.launch import hardware_stack, policy_stack, sim_stack
+    from runtime.nodes.common import config_from_dict, config_to_dict
+    from runtime.nodes.policy_node import PolicyNodeConfig
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96],
+                                                        "horizons": {"action": 8}, "tasks": ["stack"]}))
+    node = lambda spec: config_from_dict(PolicyNodeConfig, config_to_dict(spec.config))  # noqa: E731
+    assert node(sim_stack(str(tmp_path))[1]).goal_query is True
+    assert node(sim_stack(str(tmp_path), goal_query=False)[1]).goal_query is False
+    assert node(policy_stack(str(tmp_path), goal_query=False)[0]).goal_query is False
+    hw = hardware_stack(str(tmp_path), "10.0.0.2", {"scene": "123"}, goal_query=False)
+    assert node(hw[-1]).goal_query is False
