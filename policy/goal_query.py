@@ -5,10 +5,10 @@ Why: a policy conditioned on its head's grasp and release points (aux_condition)
 pick up (stack: 3.6 cm off on an episode's first frames) but not the block to put it on (10.2 cm off on the same
 frames; 8-14 cm while carrying): MiniLM mean-pools the sentence, so the roles of "the red block" and "the blue
 block" are barely in it, and the goal clause alone has not taught the head the second block. Asked "stack the
-blue block on the red block" about the same first frames, the head's grasp point is the blue block, 3.3 cm off
+blue block on the red block" about the same first frames, the head's grasp point is the blue block, 3.5 cm off
 the release point once a fixed offset (the release's height over the grasp) is added. In closed loop on the seen
-seeds 100000-100019 the shipped bundle stacked 1/20 with its head's release point, 5/20 with this one, 10/20 with
-the sim's true one (policy/EXPERIMENTS.md, "The goal query").
+seeds 100000-100019 the shipped bundle stacks 1/20 with its head's release point and 8/20 with this one (the
+sim's true point gave an earlier run 10/20; policy/EXPERIMENTS.md, "The goal query").
 
 How: per command of a family the bundle's manifest lists (`goal_query`), `role_swap` exchanges the object phrase
 before the goal clause with the one in it; for the first `ticks` inferences the head reads the swapped sentence
