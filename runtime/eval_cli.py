@@ -160,8 +160,11 @@ def _eval(args) -> int:
                "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
                "bundle": bundle.info()}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    asked = (", ".join(bundle.goal_query.families) if bundle.goal_query else "") if not args.no_goal_query else ""
+    query = (f"Goal query (policy/goal_query.py) for: {asked}" if asked else
+             "Goal query: off" + (" (--no-goal-query)" if bundle.goal_query else " (the bundle has none)"))
     (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
-                                         f"speed): {pace.describe()}\n\n{table}\n")
+                                         f"speed): {pace.describe()}. {query}\n\n{table}\n")
     png = plot(rows, args.out / "success.png")
     if args.json:
         print(json.dumps(summary, indent=2))

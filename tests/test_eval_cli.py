@@ -73,6 +73,11 @@ def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_on
     settings = json.loads((tmp_path / "a" / "summary.json").read_text())["settings"]
     assert settings["latency_ms"] == 6.0 and settings["pace"] == {"pick_place": 0.5} and a["speed"] == 0.5
     assert "Policy pace (fraction of the recorded speed): pick_place 0.5" in (tmp_path / "a" / "results.md").read_text()
+    assert "Goal query: off (the bundle has none)" in (tmp_path / "a" / "results.md").read_text()
+    assert [kw["goal_query"] for kw in episode_kwargs] == [True, True]  # on unless --no-goal-query
+    assert main([*base, "--no-goal-query", "--out", str(tmp_path / "e")]) == 0
+    assert episode_kwargs[-1]["goal_query"] is False
+    assert json.loads((tmp_path / "e" / "summary.json").read_text())["settings"]["goal_query"] is False
     assert main([*base, "--speed", "drawer_shut=0.5", "--out", str(tmp_path / "d")]) == 2
     assert "--speed.drawer_shut: unknown task family" in capsys.readouterr().err
     assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2
