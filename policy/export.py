@@ -210,6 +210,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
 
     run_dir = Path(run_dir)
     if is_bundle(run_dir):
+        if checkpoint is not None or not ema:
+            raise ValueError(f"{run_dir} is a bundle: it holds one set of weights (the export's), so --checkpoint and "
+                             "--no-ema do not apply; give the run directory to choose its checkpoint")
         model, normalizer, data_info, training, kept = _bundle_source(run_dir)
         pace = kept if pace is None else pace
     else:

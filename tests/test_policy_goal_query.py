@@ -209,6 +209,8 @@ def test_the_measure_refuses_data_without_two_object_commands_and_a_head_far_off
     with pytest.raises(ValueError, match="--goal-query.juggle"):
         export(exported / "plain", tmp_path / "b", cache_dir=CACHE,
                goal_query={"families": ["juggle"], "data": exported / "data", "ticks": 2})
+    with pytest.raises(ValueError, match="is a bundle"):
+        export(exported / "plain", tmp_path / "b", cache_dir=CACHE, ema=False)
     assert not (tmp_path / "b").exists()
     shutil.rmtree(data)
 
