@@ -59,6 +59,12 @@ def points_to_tcp(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.einsum("...ji,...j->...i", R0, np.asarray(points, np.float64) - p0)
 
 
+def points_from_tcp(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """The inverse of points_to_tcp: points (..., N, 3) in the frame of `pose` (..., 9) -> base frame, float64."""
+    p0, R0 = np.asarray(pose, np.float64)[..., None, :3], rotations(np.asarray(pose)[..., 3:9])[..., None, :, :]
+    return p0 + np.einsum("...ij,...j->...i", R0, np.asarray(points, np.float64))
+
+
 def to_tcp(actions: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Absolute actions (..., N, Da) -> relative to `pose` (..., 9) = TCP position and rot6d (one per chunk)."""
     a = np.asarray(actions, np.float64)

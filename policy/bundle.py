@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from policy.action_frame import from_tcp, orthonormalize_rot6d, rotations
+from policy.action_frame import from_tcp, orthonormalize_rot6d, points_from_tcp
 from policy.config import AUX_TCP_SCALE
 from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORTED_VERSIONS, TEXT_DIM,  # noqa: F401
                                     BundleError, check_manifest, expected_graphs, need, goal_clause_of,
@@ -306,8 +306,7 @@ class Bundle:
         reads it relative to the gripper at the newest proprio step); only for a bundle with release_input."""
         need(self.release_input, f"{self.root} has no aux_points output (exported without release_input)")
         points = self._encode(images, proprio, text_embedding, stage, None)[1][0]
-        pose = np.asarray(proprio, np.float64)[-1, :9]
-        return (pose[:3] + rotations(pose[3:9]) @ (points[:3] * AUX_TCP_SCALE)).astype(np.float32)
+        return points_from_tcp(points[None, :3] * AUX_TCP_SCALE, np.asarray(proprio)[-1, :9])[0].astype(np.float32)
 
     def _encode(self, images, proprio, text_embedding, stage: int, release) -> list[np.ndarray]:
         """The obs encoder's outputs (cond, and with release_input the head's aux_points) for checked inputs."""

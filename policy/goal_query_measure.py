@@ -16,14 +16,10 @@ import numpy as np
 import torch
 from torch.utils.data import default_collate
 
-from policy.action_frame import rotations
+from policy.action_frame import points_from_tcp
 from policy.config import AUX_TCP_SCALE
 from policy.goal_query import MAX_OFFSET_M, MAX_TICKS, role_swap
 from policy.instruction import embed_instructions
-
-
-def _base(points_tcp: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    return pose[:3] + rotations(pose[3:9]) @ (points_tcp * AUX_TCP_SCALE)
 
 
 @torch.no_grad()
@@ -61,7 +57,8 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
                                                    swapped.expand(len(rows), -1)))[:, :3].numpy()
         own = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"], batch["text"]))[:, 3:6].numpy()
         steps = [ds._newest_step(i)[1] for i in rows]
-        queried.append(np.median([_base(g, ds.tcp_pose[k][t]) for g, t in zip(grasp, steps)], axis=0))
+        poses = np.stack([ds.tcp_pose[k][t][:9] for t in steps])
+        queried.append(np.median(points_from_tcp(grasp[:, None] * AUX_TCP_SCALE, poses)[:, 0], axis=0))
         head_release.append(np.median(own * AUX_TCP_SCALE, axis=0))
         truth.append(ds.aux_points[k][steps[0]][1])
     queried, head_release, truth = np.stack(queried), np.stack(head_release), np.stack(truth)

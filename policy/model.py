@@ -278,10 +278,9 @@ class DiffusionPolicy(nn.Module):
         """The denoiser's global cond (B, G): features, then with aux_condition the head's points (training: `loss`)."""
         return self.cond_from(self.obs_encoder(images, proprio, text), proprio)
 
-    def cond_from(self, features: torch.Tensor, proprio: torch.Tensor, points: torch.Tensor | None = None
-                  ) -> torch.Tensor:
-        """Obs encoder features (B, G') and their normalized proprio (B, To, Dp) -> the inference cond (B, G);
-        `points` (B, aux_dim) in the head's units instead of the head's own (policy.graph_frames.with_release)."""
+    def cond_from(self, features: torch.Tensor, proprio: torch.Tensor, points: torch.Tensor | None = None) -> torch.Tensor:
+        """Obs encoder features (B, G') and normalized proprio (B, To, Dp) -> the inference cond (B, G); `points`
+        (B, aux_dim, head units) in place of the head's own (policy.graph_frames.with_release)."""
         if not self.cfg.aux_condition:
             return features
         points = self.points_for_denoiser(self.aux_points(features) if points is None else points, proprio)
@@ -300,8 +299,7 @@ class DiffusionPolicy(nn.Module):
         return release_to_tcp(points, proprio, self.proprio_scale, self.proprio_offset)
 
     def aux_points(self, features: torch.Tensor) -> torch.Tensor:
-        """The aux head's grasp and release points, then any grasp axis (B, cfg.aux_dim), from the obs encoder's features (not from a
-        cond, whose image features image_cond_dropout may have hidden)."""
+        """(B, aux_dim): the head's grasp and release points, any grasp axis, from features (a cond's may be dropped out)."""
         return self.aux_head(self.image_features(features))
 
     def forward(self, noisy: torch.Tensor, timestep: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:

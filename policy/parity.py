@@ -45,11 +45,17 @@ def _random_observations(cfg, normalizer: Normalizer, trials: int, seed: int):
         yield images, proprio, text, noise, int(rng.integers(0, cfg.stage_bins + 1)) if cfg.stage_bins else 0
 
 
-def _encode(model: DiffusionPolicy, normalizer: Normalizer, images: dict, proprio: np.ndarray, text: np.ndarray,
+def _inputs(model: DiffusionPolicy, normalizer: Normalizer, images: dict, proprio: np.ndarray, text: np.ndarray,
             stage: int):
+    """One raw observation as the torch obs encoder reads it: (images, proprio, text), batch of one."""
     imgs = {c: prepare_images(torch.from_numpy(images[c])[None], model.cfg.crop_size) for c in model.cfg.cameras}
     p = with_stage(normalizer.normalize_proprio(proprio), stage, model.cfg.stage_bins)
-    return model.encode(imgs, torch.from_numpy(p)[None], torch.from_numpy(text)[None])
+    return imgs, torch.from_numpy(p)[None], torch.from_numpy(text)[None]
+
+
+def _encode(model: DiffusionPolicy, normalizer: Normalizer, images: dict, proprio: np.ndarray, text: np.ndarray,
+            stage: int):
+    return model.encode(*_inputs(model, normalizer, images, proprio, text, stage))
 
 
 @torch.no_grad()
@@ -103,9 +109,8 @@ def _release_parity(model: DiffusionPolicy, normalizer: Normalizer, b, trials: i
     for images, proprio, text, _, stage in _random_observations(model.cfg, normalizer, trials, seed):
         release = np.append(rng.uniform([-0.4, 0.2, 0.0], [0.4, 0.8, 0.3]), 1.0).astype(np.float32)
         cond, points = b._encode(images, proprio, text, stage, release)
-        imgs = {c: prepare_images(torch.from_numpy(images[c])[None], model.cfg.crop_size) for c in model.cfg.cameras}
-        p = torch.from_numpy(with_stage(normalizer.normalize_proprio(proprio), stage, model.cfg.stage_bins))[None]
-        features = model.obs_encoder(imgs, p, torch.from_numpy(text)[None])
+        imgs, p, t = _inputs(model, normalizer, images, proprio, text, stage)
+        features = model.obs_encoder(imgs, p, t)
         head = model.aux_points(features)
         ref = model.unet.condition(model.cond_from(features, p, with_release(head, torch.from_numpy(release)[None])))
         worst["release_cond_max_abs_err"] = max(worst["release_cond_max_abs_err"], float(np.abs(ref.numpy() - cond).max()))

@@ -160,9 +160,12 @@ def _eval(args) -> int:
                "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
                "bundle": bundle.info()}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    asked = (", ".join(bundle.goal_query.families) if bundle.goal_query else "") if not args.no_goal_query else ""
-    query = (f"Goal query (policy/goal_query.py) for: {asked}" if asked else
-             "Goal query: off" + (" (--no-goal-query)" if bundle.goal_query else " (the bundle has none)"))
+    if bundle.goal_query is None:
+        query = "Goal query: off (the bundle has none)"
+    elif args.no_goal_query:
+        query = "Goal query: off (--no-goal-query)"
+    else:
+        query = f"Goal query (policy/goal_query.py) for: {', '.join(bundle.goal_query.families)}"
     (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
                                          f"speed): {pace.describe()}. {query}\n\n{table}\n")
     png = plot(rows, args.out / "success.png")
