@@ -3,6 +3,7 @@
 # one training per NAME='OVERRIDES_JSON' in its own session, all due SECONDS after this script started; then return.
 # usage: bash tools/gpu_lease/job.sh EPISODES SECONDS NAME='{...}' [NAME2='{...}' ...]
 # SEED_OFFSET (default 1000): the data's first seed of each task (texts.py must have embedded the same range).
+# EXTRA_TASKS, EXTRA_EPISODES: then more of some families (EXTRA_EPISODES each, counting the first EPISODES).
 # With EVAL_END (epoch s) set, each run is then exported and evaluated on EVAL_EPISODES seeds from EVAL_SEED of
 # each of EVAL_TASKS (default pick_place; finish.sh), the cores shared among the runs.
 set -u
@@ -26,10 +27,17 @@ with lzma.open(".gpu/text_encoder.onnx.xz") as f, open("policy/bundles/demo/text
 shutil.copytree(".gpu/tokenizer", "policy/bundles/demo/tokenizer", dirs_exist_ok=True)
 PYEOF
 W=$(( $(nproc) - 1 ))
-OMP_NUM_THREADS=1 timeout -s INT ${DATAGEN_LIMIT_S:-330} $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" \
-    datagen $(printf -- "--task %s " ${TASKS:-pick_place}) --episodes "$N" --seed-offset "${SEED_OFFSET:-1000}" --holdout-color purple --path-noise-cm 3 --out /tmp/data \
-    --workers $W \
-    2>&1 | tr '\r' '\n' | tail -3
+DATAGEN_END=$(( $(date +%s) + ${DATAGEN_LIMIT_S:-330} ))
+datagen() {  # datagen EPISODES TASK...: into /tmp/data (a dataset grows: done episodes are skipped), until DATAGEN_END
+    local n=$1; shift
+    OMP_NUM_THREADS=1 timeout -s INT $(( DATAGEN_END - $(date +%s) )) $PY -c "import sys; from runtime.cli import main; sys.exit(main(sys.argv[1:]))" \
+        datagen $(printf -- "--task %s " "$@") --episodes "$n" --seed-offset "${SEED_OFFSET:-1000}" --holdout-color purple --path-noise-cm 3 --out /tmp/data \
+        --workers $W \
+        2>&1 | tr '\r' '\n' | tail -3
+}
+datagen "$N" ${TASKS:-pick_place}
+# EXTRA_TASKS get EXTRA_EPISODES each in all (the same seeds on: the first N are there already), in the time left
+[ -z "${EXTRA_TASKS:-}" ] || [ "$(date +%s)" -ge $DATAGEN_END ] || datagen "$EXTRA_EPISODES" $EXTRA_TASKS
 sleep 2
 echo "datagen done at $(( $(date +%s) - T0 )) s"
 for spec in "$@"; do

@@ -35,9 +35,17 @@ def main() -> None:
     init_from = extra.pop("init_from", None)  # a run directory carried along (.gpu/run_pre3: the pretrained encoders)
     encoders_from = extra.pop("encoders_from", None)
     device = "cuda" if torch.cuda.is_available() else "cpu"  # cpu: a dry run of the scripts
+    steps = extra.pop("steps", None)  # known from an earlier lease: no probe leg (it loads the data twice)
     ov = {**base, "batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
           "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
           **extra}
+    if steps:
+        print(out.name, json.dumps(train(data, config, out, steps=int(steps), embedder=embed, overrides=ov,
+                                         device=device, progress=True, init_from=init_from,
+                                         encoders_from=encoders_from)), flush=True)
+        (out / "plan.json").write_text(json.dumps({"steps": steps, "overrides": ov}))
+        (out / "DONE").write_text("ok")
+        return
     # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
     probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
     train(data, config, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
