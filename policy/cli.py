@@ -106,7 +106,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     val.set_defaults(func=_validate)
 
     orc = sub.add_parser(
-        "oracle-eval", help="closed-loop pick_place or stack episodes with the aux head's points replaced by the truth",
+        "oracle-eval", help="closed-loop episodes with the aux head's points replaced by the truth",
         description="Split a policy's failures into perception and control (policy/oracle_eval.py): run the\n"
                     "seen suite of `sudd eval` (same seeds, controller and safety filter) with the run's torch\n"
                     "checkpoint, giving the denoiser the sim's true grasp and release points instead of its aux\n"
@@ -117,13 +117,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                "  sudd oracle-eval out/run_fc5 --episodes 120 --true-points release --latency-ms 6 --workers 2 "
                "--out out/oracle_rel\n"
                "  sudd oracle-eval out/run_slow --task stack --episodes 20 --true-points release --latency-ms 6 "
-               "--workers 2 --out out/oracle_stack   # does the block to stack on decide it?")
-    orc.add_argument("run", type=Path, help="training run directory (aux_condition, tcp frames)")
+               "--workers 2 --out out/oracle_stack   # does the block to stack on decide it?\n"
+               "  sudd oracle-eval policy/bundles/multitask --task drawer_put --phases --offsets-data out/data_ft "
+               "--episodes 20 --latency-ms 6 --workers 2 --out out/oracle_dput   # the skills, given the object")
+    orc.add_argument("run", type=Path, help="training run directory or bundle (aux_condition, tcp frames)")
     orc.add_argument("--out", type=Path, required=True, help="directory for results.jsonl and results.md")
     orc.add_argument("--episodes", type=int, default=30, help="episodes, seeds seed-offset.. (default 30)")
     orc.add_argument("--seed-offset", type=int, default=100000, help="first seed (default 100000, as sudd eval)")
-    orc.add_argument("--task", default="pick_place", choices=("pick_place", "stack"),
-                     help="the family (one that carries an object from a grasp to a release; default pick_place)")
+    orc.add_argument("--task", default="pick_place", choices=("pick_place", "stack", "drawer_put"),
+                     help="the family (one that carries an object from a grasp to a release; default pick_place); "
+                          "drawer_put's points are replaced while it takes the object to the drawer only")
+    orc.add_argument("--phases", action="store_true",
+                     help="run the command as the skills it is made of, switched by grasp cycles, each at its "
+                          "family's pace in the bundle (runtime/phases.py; drawer_put: open, take, close)")
+    orc.add_argument("--offsets-data", type=Path, metavar="DIR",
+                     help="dataset to measure the grasp and release offsets on (default the run's own; a bundle "
+                          "trained elsewhere needs one of this family)")
     orc.add_argument("--bias-cm", type=float, default=0.0, help="move the true grasp point this far sideways")
     orc.add_argument("--true-points", choices=("both", "grasp", "release"), default="both",
                      help="which of the head's points the truth replaces (default both; with one, the other stays "
@@ -274,7 +283,7 @@ def _oracle_eval(args) -> int:
         raise SystemExit(f"--latency-ms must be in [0, 1000], got {args.latency_ms}")
     rows = oracle_eval(args.run, args.out, args.episodes, args.seed_offset, args.bias_cm, args.inference_steps,
                        args.dr, args.workers, true_points=args.true_points, latency_ms=args.latency_ms,
-                       task=args.task)
+                       task=args.task, phases=args.phases, offsets_data=args.offsets_data)
     print(markdown_table(rows))
     print(f"per episode {args.out / 'results.jsonl'}; compare with `sudd eval` on the same seeds")
     return 0

@@ -42,7 +42,7 @@ class TruePoints:
     def __init__(self, offsets: dict, bias_cm: float, seed: int, task: str = "pick_place"):
         from datagen.view_anchors import CARRIES
 
-        self.picked, self.goal = CARRIES[task]
+        self.picked, self.goal = CARRIES.get(task, ("target", None))
         self.offsets, self.points, self._z0 = offsets, None, None
         angle = np.random.default_rng([seed, 23]).uniform(0.0, 2 * np.pi)
         self.bias = bias_cm / 100.0 * np.array([np.cos(angle), np.sin(angle), 0.0])
@@ -58,13 +58,36 @@ class TruePoints:
             self.points = np.stack([obj + self.offsets["grasp"] + self.bias, bin_ + self.offsets["release"]])
 
 
+class DrawerPutPoints(TruePoints):
+    """drawer_put's middle grasp cycle: the object (followed until lifted, as above) and the open drawer's floor
+    (datagen.views_stages.drop_point, which moves with the drawer), the offsets measured on that cycle
+    (`measure_offsets(data, "drawer_put/object")`) in the cabinet's frame."""
+
+    def __call__(self, world, inst) -> None:
+        from types import SimpleNamespace
+
+        from datagen.views_stages import drop_point
+        from sim.state import StateView
+        from sim.tasks.drawer import CABINET
+
+        state = StateView(world)
+        R, obj = state.rotation(CABINET), state.position(inst.params[self.picked])
+        if self._z0 is None:
+            self._z0 = obj[2]
+        grasp = obj + R @ self.offsets["grasp"] + self.bias
+        if self.points is not None and obj[2] >= self._z0 + LIFTED_M:
+            grasp = self.points[0]
+        self.points = np.stack([grasp, drop_point(SimpleNamespace(world=world)) + R @ self.offsets["release"]])
+
+
 class OracleAuxPolicy:
     """What `runtime.evaluate.run_policy_episode` needs of a bundle, from a torch run, with true aux points."""
 
     def __init__(self, model, normalizer, embedder, inference_steps: int | None = None, control_hz: float = 10.0,
-                 true_points: str = "both"):
+                 true_points: str = "both", only_stage: int | None = None):
         cfg = model.cfg
         self.replaced = replaced_points(true_points)
+        self.only_stage = only_stage  # replace the points only while this many grasp cycles are done (drawer_put: 1)
         if not cfg.aux_condition or cfg.aux_target_frame != "tcp" or cfg.action_frame != "tcp":
             raise ValueError("oracle-eval needs a run with aux_condition = true and the tcp aux target and action "
                              f"frames; this one has aux_condition={cfg.aux_condition}, aux_target_frame="
@@ -101,7 +124,7 @@ class OracleAuxPolicy:
             cond = self.model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
         start = cond.shape[1] - cfg.aux_dim
         true = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
-        for k in self.replaced:
+        for k in self.replaced if self.only_stage in (None, stage) else ():
             cond[0, start + 3 * k:start + 3 * k + 3] = true[3 * k:3 * k + 3]
         return cond
 
@@ -125,14 +148,22 @@ _WORKER: dict = {}
 def _init(settings: dict) -> None:
     import torch
 
+    from policy.bundle_import import is_bundle, model_from_bundle
     from policy.text import default_embedder
     from policy.train import load_run_model
     from policy.warm_start import source_normalizer
 
     torch.set_num_threads(1)
-    model, _, _ = load_run_model(settings["run"])
-    policy = OracleAuxPolicy(model, source_normalizer(settings["run"]), default_embedder(), settings["steps"],
-                             true_points=settings["true_points"])
+    if is_bundle(settings["run"]):
+        model, normalizer, _ = model_from_bundle(settings["run"])
+    else:
+        model, normalizer = load_run_model(settings["run"])[0], source_normalizer(settings["run"])
+    policy = OracleAuxPolicy(model, normalizer, default_embedder(), settings["steps"],
+                             true_points=settings["true_points"],
+                             only_stage=1 if settings["task"] == "drawer_put" else None)
+    # the gripper levels the controller snaps commands to, as `sudd eval` takes them from a bundle: without the
+    # half-open 0.5 a drawer's handle is met with open fingers
+    policy.manifest["data"] = {"gripper_levels": settings["gripper_levels"]}
     _WORKER.update(settings=settings, policy=policy)
 
 
@@ -141,41 +172,64 @@ def _job(seed: int) -> dict:
     from sim.tasks import Holdout
 
     s, policy = _WORKER["settings"], _WORKER["policy"]
+    from policy.pace import Pace
+    from runtime.phases import phases_for
+
     offsets = {k: np.asarray(v) for k, v in s["offsets"].items()}
-    policy.truth = TruePoints(offsets, s["bias_cm"], seed, s["task"])
+    points = DrawerPutPoints if s["task"] == "drawer_put" else TruePoints
+    policy.truth = points(offsets, s["bias_cm"], seed, s["task"])
+    phases = phases_for(s["task"], Pace(s["pace"])) if s["phases"] else None
     t0 = time.perf_counter()
     out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
-                             time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"],
+                             time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"], phases=phases,
                              holdout=Holdout(colors=tuple(s["holdout"]["colors"]),
                                              shapes=tuple(s["holdout"]["shapes"])))
     suite = "oracle" if s["true_points"] == "both" else f"oracle-{s['true_points']}"
     suite += "" if s["bias_cm"] == 0 else f"+{s['bias_cm']:g}cm"
+    suite += "+phases" if s["phases"] else ""
     return {"suite": suite, "who": "policy", **out.record(), "wall_s": round(time.perf_counter() - t0, 2)}
 
 
 def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_offset: int = 100000,
                 bias_cm: float = 0.0, inference_steps: int | None = None, dr: str = "heavy", workers: int = 1,
                 progress: bool = True, time_limit_factor: float = 1.0, true_points: str = "both",
-                latency_ms: float | None = None, task: str = "pick_place") -> list[dict]:
+                latency_ms: float | None = None, task: str = "pick_place", phases: bool = False,
+                offsets_data: str | Path | None = None) -> list[dict]:
     """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows.
     true_points: which aux points the truth replaces (TRUE_POINTS); latency_ms: a fixed simulated inference lag
     (as `sudd eval --latency-ms`: a rerun is then the same episodes) instead of each inference's measured one.
-    task: a family that carries an object from a grasp to a release (datagen.view_anchors.CARRIES)."""
+    task: a family that carries an object from a grasp to a release (datagen.view_anchors.CARRIES), or
+    drawer_put, whose points are replaced in its middle grasp cycle only (the object to the drawer; opening and
+    shutting keep the head's). phases: run the command as the skills of runtime.phases at the bundle's pace (a
+    run has no pace table: 1). run_dir: a training run or a bundle (rebuilt in torch, policy.bundle_import);
+    offsets_data: the dataset the grasp and release offsets are measured on (default the run's own)."""
     replaced_points(true_points)  # a bad name fails here, before any worker starts
     from datagen.view_anchors import CARRIES
     from datagen.views import measure_offsets
     from runtime.eval_report import failure_table, markdown_table, summarise
 
+    from policy.bundle_import import is_bundle
+    from policy.pace import Pace, bundle_pace
+    from runtime.phases import phases_for
+
     run_dir, out_dir = Path(run_dir), Path(out_dir)
-    dataset = json.loads((run_dir / "dataset.json").read_text())
-    if task not in CARRIES:
+    if is_bundle(run_dir):
+        manifest = json.loads((run_dir / "manifest.json").read_text())
+        dataset, pace = manifest["data"], bundle_pace(manifest).table
+    else:
+        dataset, pace = json.loads((run_dir / "dataset.json").read_text()), {}
+    if task not in (*CARRIES, "drawer_put"):
         raise ValueError(f"oracle-eval --task {task}: expected a family that carries an object, one of "
-                         f"{', '.join(CARRIES)} (a drawer's points are its handle's, not an object's)")
-    offsets = measure_offsets(dataset["path"], task)
-    settings = {"run": str(run_dir), "task": task, "dr": dr, "bias_cm": float(bias_cm), "steps": inference_steps,
+                         f"{', '.join(CARRIES)} or drawer_put (a drawer's points are its handle's, not an object's)")
+    if phases:
+        phases_for(task, Pace({}))  # a family run as one command fails here, before any worker starts
+    offsets = measure_offsets(offsets_data or dataset["path"], "drawer_put/object" if task == "drawer_put" else task)
+    settings = {"run": str(run_dir), "task": task, "phases": bool(phases), "pace": pace, "dr": dr,
+                "bias_cm": float(bias_cm), "steps": inference_steps,
                 "time_limit_factor": time_limit_factor, "true_points": true_points,
                 "latency_s": None if latency_ms is None else latency_ms / 1000.0,
                 "holdout": dataset.get("holdout") or {"colors": [], "shapes": []},
+                "gripper_levels": dataset.get("gripper_levels"),
                 "offsets": {k: np.asarray(offsets[k]).tolist() for k in ("grasp", "release")}}
     seeds = list(range(seed_offset, seed_offset + episodes))
     out_dir.mkdir(parents=True, exist_ok=True)

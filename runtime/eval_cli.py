@@ -69,6 +69,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--no-goal-query", action="store_true",
                     help="condition on the head's own release point where the bundle's goal query would replace it "
                          "(policy/goal_query.py): to measure what the query buys on the same seeds")
+    ev.add_argument("--phases", action="store_true",
+                    help="run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the "
+                         "drawer, take the object, close the drawer), switched by grasp cycles, each at its "
+                         "family's pace; other families as always")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -125,6 +129,7 @@ def _eval(args) -> int:
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
+                "phases": args.phases,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
@@ -166,6 +171,8 @@ def _eval(args) -> int:
         query = "Goal query: off (--no-goal-query)"
     else:
         query = f"Goal query (policy/goal_query.py) for: {', '.join(bundle.goal_query.families)}"
+    if args.phases:
+        query += ". Phases (runtime/phases.py): drawer_put as open the drawer, take the object, close the drawer"
     (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
                                          f"speed): {pace.describe()}. {query}\n\n{table}\n")
     png = plot(rows, args.out / "success.png")
@@ -241,16 +248,19 @@ def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
     from runtime.eval_filmstrip import Filmstrip
     from runtime.evaluate import run_policy_episode
+    from runtime.phases import PHASED, phases_for
 
     strip = Filmstrip() if s["filmstrips"] else None
+    pace = Pace(s.get("pace", {}))
+    phases = phases_for(job["task"], pace) if s.get("phases") and job["task"] in PHASED else None
     try:
         out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
-                                 speed=Pace(s.get("pace", {})).speed(job["task"]),
-                                 goal_query=s.get("goal_query", True)).record()
+                                 speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
+                                 phases=phases).record()
         if strip is not None and not out["success"]:
             title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
                      f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")

@@ -73,6 +73,7 @@ class EpisodeOutcome:
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
+    phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -85,19 +86,21 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
-                       goal_query: bool = True) -> EpisodeOutcome:
+                       goal_query: bool = True, phases: list | None = None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
     of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos); `speed` the
     pace the arm follows the chunks at (runtime.pace: ticks and actions 1 / (control_hz x speed) apart, the
     observations still 1 / control_hz); `goal_query` False: the head's own release point, where the bundle's
-    goal query would replace it (policy.goal_query)."""
+    goal query would replace it (policy.goal_query); `phases` (runtime.phases) run the command as skills, the
+    phase and its text and pace chosen by the grasp cycles so far (`speed` then unused)."""
     from policy.goal_query import GoalQuery
 
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
+    from runtime.phases import phase_at
     from sim.twins.rig import SimRig
 
     check_speed(speed)  # before anything is built
@@ -107,6 +110,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         command = family.paraphrase(inst, np.random.default_rng([seed, 7]))
     text = command or ep.instruction
     emb = bundle.embed(text)
+    phase_embs = [emb if p.text is None else bundle.embed(p.text) for p in phases] if phases else None
     query = GoalQuery(bundle, text, task, enabled=goal_query)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
@@ -115,7 +119,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(limits)),
                           with_bundle_levels(controller or ControllerConfig(), bundle.manifest))
     rec = Recorder(ep, image_size=tuple(bundle.image_size))
-    dt_ns = action_period_ns(float(bundle.manifest["horizons"].get("control_hz", 10.0)), speed)
+    control_hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
+    dt_ns = action_period_ns(control_hz, phases[0].speed if phases else speed)
     per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
     To = bundle.obs_horizon
     budget = family.max_seconds * time_limit_factor
@@ -148,6 +153,12 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
+                if phases:
+                    k = phase_at(phases, stage)
+                    if k != out.phase:  # the next skill: its text, and its pace from this tick on
+                        out.phase, emb = k, phase_embs[k]
+                        dt_ns = action_period_ns(control_hz, phases[k].speed)
+                        per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
                 release = query.release(images, proprio, stage)
                 given = {} if release is None else {"release": release}  # a policy without the query takes none
                 actions = bundle.act(images, proprio, emb, rng=rng, stage=stage, **given)[bundle.execute]

@@ -78,6 +78,15 @@ def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_on
     assert main([*base, "--no-goal-query", "--out", str(tmp_path / "e")]) == 0
     assert episode_kwargs[-1]["goal_query"] is False
     assert json.loads((tmp_path / "e" / "summary.json").read_text())["settings"]["goal_query"] is False
+    assert all(kw["phases"] is None for kw in episode_kwargs)  # one command unless --phases
+    assert main([*base, "--task", "drawer_put", "--phases", "--speed", "drawer_open=0.75",
+                 "--out", str(tmp_path / "f")]) == 0
+    from runtime.phases import Phase
+
+    by_task = {kw["phases"] is not None: kw for kw in episode_kwargs[-2:]}  # pick_place, then drawer_put
+    assert by_task[False]["speed"] == 1.0  # pick_place is one command whatever --phases says
+    assert by_task[True]["phases"] == [Phase("open the drawer", 0.75), Phase(None, 1.0), Phase("close the drawer", 1.0)]
+    assert "Phases (runtime/phases.py)" in (tmp_path / "f" / "results.md").read_text()
     assert main([*base, "--speed", "drawer_shut=0.5", "--out", str(tmp_path / "d")]) == 2
     assert "--speed.drawer_shut: unknown task family" in capsys.readouterr().err
     assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2

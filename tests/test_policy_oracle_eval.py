@@ -37,6 +37,16 @@ def _policy(run) -> OracleAuxPolicy:
     return OracleAuxPolicy(model, source_normalizer(run), hash_embedder)
 
 
+def _observation(cfg, ep) -> tuple[dict, np.ndarray]:
+    """Random camera frames and the arm's proprio as the episode starts, as the policy is given them."""
+    rng = np.random.default_rng(0)
+    images = {c: rng.integers(0, 256, (cfg.obs_horizon, *cfg.image_size, 3), dtype=np.uint8) for c in cfg.cameras}
+    T = ep.world.tcp_pose()
+    proprio = np.tile(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [0.0], ep.world.arm_q()]),
+                      (cfg.obs_horizon, 1)).astype(np.float32)
+    return images, proprio
+
+
 def test_true_points_are_the_object_and_bin_plus_the_offsets_and_bias_moves_the_grasp_sideways():
     ep = build_episode("pick_place", SEED, "heavy", "fast")
     state = StateView(ep.world)
@@ -69,11 +79,7 @@ def test_the_denoiser_gets_the_true_points_in_the_tcp_frame_and_the_head_is_bypa
     ep = build_episode("pick_place", SEED, "heavy", "fast")
     policy.truth = TruePoints(OFFSETS, 0.0, SEED)
     policy.truth(ep.world, ep.instance)
-    rng = np.random.default_rng(0)
-    images = {c: rng.integers(0, 256, (cfg.obs_horizon, *cfg.image_size, 3), dtype=np.uint8) for c in cfg.cameras}
-    T = ep.world.tcp_pose()
-    proprio = np.tile(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [0.0], ep.world.arm_q()]),
-                      (cfg.obs_horizon, 1)).astype(np.float32)
+    images, proprio = _observation(cfg, ep)
     emb = policy.embed("move the blue block to the left bin")
     cond = policy.cond(images, proprio, emb)
     torch.testing.assert_close(cond[0, -AUX_DIM:], relative_to_tcp(policy.truth.points, proprio[-1]))
@@ -122,3 +128,40 @@ def test_a_run_without_aux_condition_is_refused_with_the_fields_named():
     model = DiffusionPolicy(load_policy_config(TINY, {"aux_target_weight": 1.0}))
     with pytest.raises(ValueError, match="aux_condition=False"):
         OracleAuxPolicy(model, None, hash_embedder)
+
+
+def test_drawer_puts_true_points_are_the_object_and_the_drawer_floor_and_replace_the_head_in_its_middle_cycle(
+        run, tmp_path):
+    from types import SimpleNamespace
+
+    from datagen.views_stages import drop_point
+    from policy.oracle_eval import DrawerPutPoints
+    from sim.tasks.drawer import CABINET
+
+    ep = build_episode("drawer_put", SEED, "heavy", "fast")
+    state = StateView(ep.world)
+    truth = DrawerPutPoints(OFFSETS, 0.0, SEED, "drawer_put")
+    truth(ep.world, ep.instance)
+    R = state.rotation(CABINET)
+    np.testing.assert_allclose(truth.points[0], state.position(ep.instance.params["target"]) + R @ OFFSETS["grasp"])
+    np.testing.assert_allclose(truth.points[1], drop_point(SimpleNamespace(world=ep.world)) + R @ OFFSETS["release"])
+    model, _, _ = load_run_model(run)
+    policy = OracleAuxPolicy(model, source_normalizer(run), hash_embedder, only_stage=1)
+    policy.truth = truth
+    cfg = model.cfg
+    images, proprio = _observation(cfg, ep)
+    emb = policy.embed("open the drawer")
+    opening, taking = policy.cond(images, proprio, emb, stage=0), policy.cond(images, proprio, emb, stage=1)
+    torch.testing.assert_close(taking[0, -AUX_DIM:], relative_to_tcp(truth.points, proprio[-1]))
+    torch.testing.assert_close(opening[0, :-AUX_DIM], taking[0, :-AUX_DIM])
+    assert not torch.allclose(opening[0, -AUX_DIM:], taking[0, -AUX_DIM:])  # the head's own while opening
+    with pytest.raises(ValueError, match="'pick_place' is run as one command"):
+        oracle_eval(run, tmp_path / "ev", episodes=1, task="pick_place", phases=True, progress=False)
+
+
+def test_the_oracle_policy_carries_the_runs_gripper_levels_to_the_controller(run):
+    from policy.oracle_eval import _WORKER, _init
+
+    _init({"run": str(run), "steps": None, "true_points": "both", "task": "pick_place",
+           "gripper_levels": [0.0, 0.5, 1.0]})
+    assert _WORKER["policy"].manifest["data"] == {"gripper_levels": [0.0, 0.5, 1.0]}

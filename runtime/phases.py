@@ -1,0 +1,42 @@
+"""A long command run as skills the policy has, one after another: its phases.
+
+Why: drawer_put is "open the drawer", take the object to it, "close the drawer", and two of those are whole
+task families the distilled policy does well at their own pace (drawer_open at 0.75, drawer_close at 0.5),
+where the same policy given drawer_put's one command opens the drawer at full speed 12 times in 20 and never
+completes it (policy/EXPERIMENTS.md, "drawer_put as three skills the policy has"). The phase is the number of
+grasp cycles completed since the command started (policy.stage.GraspCycles: the handle let go, then the
+object), a signal a real 2F-85 gives as well as the sim, so no success check or privileged state decides it.
+
+A phase's text None stands for the command itself; its family names the pace (the bundle's pace table) the
+arm plays that phase at.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from policy.pace import Pace
+
+
+@dataclass(frozen=True)
+class Phase:
+    text: str | None  # None: the command itself
+    speed: float
+
+
+# family -> (text or None for the command, the family whose pace it plays at), one per grasp-cycle count
+PHASED: dict[str, tuple[tuple[str | None, str], ...]] = {
+    "drawer_put": (("open the drawer", "drawer_open"), (None, "drawer_put"), ("close the drawer", "drawer_close")),
+}
+
+
+def phases_for(task: str, pace: Pace) -> list[Phase]:
+    """The phases of family `task` at the bundle's pace (a ValueError for a family run as one command)."""
+    if task not in PHASED:
+        raise ValueError(f"phases: the family {task!r} is run as one command; phased families: {', '.join(PHASED)}")
+    return [Phase(text, pace.speed(family)) for text, family in PHASED[task]]
+
+
+def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
+    """The phase running after `grasp_cycles` completed cycles (the last one stays once reached)."""
+    return min(max(int(grasp_cycles), 0), len(phases) - 1)
