@@ -100,7 +100,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
-    from runtime.phases import phase_at
+    from runtime.phases import Sequencer
     from sim.twins.rig import SimRig
 
     check_speed(speed)  # before anything is built
@@ -110,7 +110,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         command = family.paraphrase(inst, np.random.default_rng([seed, 7]))
     text = command or ep.instruction
     emb = bundle.embed(text)
-    phase_embs = [emb if p.text is None else bundle.embed(p.text) for p in phases] if phases else None
+    sequencer = Sequencer(phases, bundle.embed, emb) if phases else None
     query = GoalQuery(bundle, text, task, enabled=goal_query)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
@@ -153,12 +153,10 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
-                if phases:
-                    k = phase_at(phases, stage)
-                    if k != out.phase:  # the next skill: its text, and its pace from this tick on
-                        out.phase, emb = k, phase_embs[k]
-                        dt_ns = action_period_ns(control_hz, phases[k].speed)
-                        per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
+                if sequencer is not None and sequencer.update(stage):  # the next skill: its text and pace
+                    out.phase, emb = sequencer.index, sequencer.embedding
+                    dt_ns = action_period_ns(control_hz, sequencer.speed)
+                    per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
                 release = query.release(images, proprio, stage)
                 given = {} if release is None else {"release": release}  # a policy without the query takes none
                 actions = bundle.act(images, proprio, emb, rng=rng, stage=stage, **given)[bundle.execute]

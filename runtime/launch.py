@@ -68,7 +68,7 @@ def bundle_manifest(path) -> dict:
 
 def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "off", command: str = "",
               robot: str = "ur5", replan_every: int = 1, speed: str = "", goal_query: bool = True,
-              **robot_overrides) -> list[NodeSpec]:
+              phases: bool = False, **robot_overrides) -> list[NodeSpec]:
     """robot node (sim twins + cameras matching the bundle) + policy node. The scene keeps the bundle's
     held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do."""
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -80,13 +80,13 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
                            image_size=tuple(man["image_size"]), holdout_colors=tuple(held.get("colors", ())),
                            holdout_shapes=tuple(held.get("shapes", ())), **robot_overrides)
     pcfg = PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
-                            goal_query=goal_query)
+                            goal_query=goal_query, phases=phases)
     return [NodeSpec(ROBOT, "runtime.nodes.robot_node", rcfg), NodeSpec("policy", "runtime.nodes.policy_node", pcfg)]
 
 
 def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], allow_motion: bool = False,
                    command: str = "", replan_every: int = 1, speed: str = "", goal_query: bool = True,
-                   **robot_overrides) -> list[NodeSpec]:
+                   phases: bool = False, **robot_overrides) -> list[NodeSpec]:
     """robot node on URRtdeArm + Robotiq2F85, one camera node per bundle camera, the policy node."""
     from runtime.nodes.camera_node import CameraNodeConfig
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -102,7 +102,7 @@ def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], a
                               CameraNodeConfig(name=cam, serial=camera_serials[cam])))
     specs.append(NodeSpec("policy", "runtime.nodes.policy_node",
                           PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every,
-                                           speed=speed, goal_query=goal_query)))
+                                           speed=speed, goal_query=goal_query, phases=phases)))
     return specs
 
 
@@ -112,13 +112,13 @@ def answers(event, command_id: str) -> bool:
 
 
 def policy_stack(bundle: str, command: str = "", replan_every: int = 1, speed: str = "",
-                 goal_query: bool = True) -> list[NodeSpec]:
+                 goal_query: bool = True, phases: bool = False) -> list[NodeSpec]:
     """The policy node alone: for a computer that joins the robot's bus with `--connect` (a GPU box)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
 
     return [NodeSpec("policy", "runtime.nodes.policy_node",
                      PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
-                                      goal_query=goal_query))]
+                                      goal_query=goal_query, phases=phases))]
 
 
 def node_kind(spec: NodeSpec) -> str:

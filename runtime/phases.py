@@ -40,3 +40,31 @@ def phases_for(task: str, pace: Pace) -> list[Phase]:
 def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
     """The phase running after `grasp_cycles` completed cycles (the last one stays once reached)."""
     return min(max(int(grasp_cycles), 0), len(phases) - 1)
+
+
+class Sequencer:
+    """The phases of one command as it runs: which one the grasp cycles so far select, its text embedding and
+    speed. `update` says when the phase changed (the caller then re-times its ticks and says so)."""
+
+    def __init__(self, phases: list[Phase], embed, command_embedding):
+        self.phases = phases
+        self.embeddings = [command_embedding if p.text is None else embed(p.text) for p in phases]
+        self.index: int | None = None
+
+    def update(self, grasp_cycles: int) -> bool:
+        k = phase_at(self.phases, grasp_cycles)
+        changed, self.index = k != self.index, k
+        return changed
+
+    @property
+    def embedding(self):
+        return self.embeddings[self.index or 0]
+
+    @property
+    def speed(self) -> float:
+        return self.phases[self.index or 0].speed
+
+    def describe(self, command: str) -> str:
+        """'phase 2 of 3: "<text>" at speed 1' for the phase running."""
+        p = self.phases[self.index or 0]
+        return f"phase {(self.index or 0) + 1} of {len(self.phases)}: '{p.text or command}' at speed {p.speed:g}"

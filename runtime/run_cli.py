@@ -93,6 +93,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="condition on the policy's own release point where the bundle asks its head where a "
                           "stack goes (the manifest's goal_query; policy/goal_query.py: the shipped bundle stacks "
                           "8/20 with it, 1/20 without)")
+    run.add_argument("--phases", action="store_true",
+                     help="run a long command as the skills it is made of, switched by the gripper's grasp cycles, "
+                          "each at its family's pace (runtime/phases.py; drawer_put: open the drawer, take the "
+                          "object, close the drawer). Experimental: the shipped bundle does not yet find drawer_put's "
+                          "object on its own (policy/EXPERIMENTS.md, \"drawer_put as three skills\")")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)
@@ -163,15 +168,15 @@ def _run(args) -> int:
         robot["limits_file"] = str(args.limits.resolve())
     if args.sim:
         specs = sim_stack(str(bundle), task=args.task, seed=args.seed, dr=args.dr, replan_every=args.replan_every,
-                          speed=args.speed, goal_query=not args.no_goal_query, **robot)
+                          speed=args.speed, goal_query=not args.no_goal_query, phases=args.phases, **robot)
     elif args.robot_ip:
         serials = dict(s.split("=", 1) for s in args.camera_serial if "=" in s)
         specs = hardware_stack(str(bundle), args.robot_ip, serials, allow_motion=args.allow_motion,
                                replan_every=args.replan_every, speed=args.speed, goal_query=not args.no_goal_query,
-                               **robot)
+                               phases=args.phases, **robot)
     else:
         specs = policy_stack(str(bundle), command=args.command or "", replan_every=args.replan_every,
-                             speed=args.speed, goal_query=not args.no_goal_query)
+                             speed=args.speed, goal_query=not args.no_goal_query, phases=args.phases)
     specs = [s for s in specs if node_kind(s) in kinds]
     la = Launcher(specs, hub=args.hub, robot_name=args.robot, connect=args.connect)
     succeeded = {"v": False}

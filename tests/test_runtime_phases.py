@@ -66,3 +66,28 @@ def test_an_episode_switches_text_and_pace_with_the_grasp_cycles(monkeypatch):
     plain = _Still()
     out = run_policy_episode(plain, "drawer_put", 100_003, command=PUT, time_limit_factor=0.02, latency_s=0.006)
     assert set(plain.texts) == {PUT} and out.phase is None
+
+
+def test_the_sequencer_switches_only_when_the_count_selects_another_phase():
+    from runtime.phases import Sequencer
+
+    seq = Sequencer(phases_for("drawer_put", Pace({"drawer_close": 0.5})), lambda t: f"emb({t})", "emb(command)")
+    assert [seq.update(n) for n in (0, 0, 1, 1, 2, 3)] == [True, False, True, False, True, False]
+    assert seq.index == 2 and seq.embedding == "emb(close the drawer)" and seq.speed == 0.5
+    seq.update(1)
+    assert seq.embedding == "emb(command)" and seq.describe(PUT) == f"phase 2 of 3: '{PUT}' at speed 1"
+
+
+def test_the_phases_switch_reaches_the_policy_node_of_every_stack(tmp_path):
+    import json
+
+    from runtime.launch import hardware_stack, policy_stack, sim_stack
+    from runtime.nodes.common import config_from_dict, config_to_dict
+    from runtime.nodes.policy_node import PolicyNodeConfig
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96]}))
+    node = lambda spec: config_from_dict(PolicyNodeConfig, config_to_dict(spec.config))  # noqa: E731
+    assert node(sim_stack(str(tmp_path))[1]).phases is False  # one command unless asked
+    assert node(sim_stack(str(tmp_path), phases=True)[1]).phases is True
+    assert node(policy_stack(str(tmp_path), phases=True)[0]).phases is True
+    assert node(hardware_stack(str(tmp_path), "10.0.0.2", {"scene": "1"}, phases=True)[-1]).phases is True

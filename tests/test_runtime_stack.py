@@ -306,3 +306,46 @@ def test_a_family_at_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bund
     for _, c in chunks:
         assert np.allclose(np.diff(c.times_ns), 2e8)
     assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
+
+
+def test_phases_run_a_drawer_put_command_as_its_first_skill_at_that_skills_pace(bundle, tmp_path):
+    """`sudd run --phases`: a drawer_put command (one the bundle is told it was trained on) is accepted as
+    drawer_put, and from the first inference the node runs phase 1 of 3, "open the drawer", at drawer_open's
+    pace in the bundle's table (0.5 here): it says so, and that chunk's actions are 0.2 s apart."""
+    import json
+
+    from policy.testing import linked_copy
+    from sim.build import build_episode
+
+    instruction = build_episode("drawer_put", SEED, "off", "fast").instruction
+    phased = linked_copy(bundle, tmp_path / "phased")
+    manifest = json.loads((phased / "manifest.json").read_text())
+    (phased / "manifest.json").write_text(json.dumps({
+        **manifest, "pace": {"drawer_open": 0.5}, "tasks": [*manifest["tasks"], "drawer_put", "drawer_open"],
+        "instructions": [*manifest["instructions"], instruction]}))
+    la = Launcher(sim_stack(str(phased), task="drawer_put", seed=SEED, phases=True), hub="tcp/127.0.0.1:0")
+    la.start()
+    events, chunks = [], []
+    la.bus.subscribe(B.SAFETY_EVENT, events.append)
+    la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
+    try:
+        info = la.wait_ready(90)
+        assert info["robot"]["instruction"] == instruction
+        la.say(instruction, "p")
+        deadline = time.monotonic() + 30
+        while len(chunks) < 6 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        la.shutdown("test end")
+    _clean_exit(la)
+    accepted = [e for e in events if e.kind == "command_accepted"]
+    assert len(accepted) == 1 and "drawer_put at speed 1" in accepted[0].message, accepted
+    phases = [e for e in events if e.kind == "policy_phase"]
+    assert phases[0].message == "phase 1 of 3: 'open the drawer' at speed 0.5", phases
+    assert phases[0].values == {"phase": 0.0, "speed": 0.5}
+    # the untrained bundle's gripper can close and reopen before the fingers shut, which counts as a cycle:
+    # later phases, if any, follow in order, each with its own text and pace
+    want = ["", f"phase 2 of 3: '{instruction}' at speed 1", "phase 3 of 3: 'close the drawer' at speed 1"]
+    assert [e.message for e in phases[1:]] == want[1:len(phases)]
+    first = chunks[0][1]  # inferred in phase 1: its actions 1 / (10 Hz x 0.5) apart
+    assert np.allclose(np.diff(first.times_ns), 2e8)

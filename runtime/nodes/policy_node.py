@@ -66,6 +66,9 @@ class PolicyNodeConfig:
     # Ask the head where the object a command puts something on is, for the families the bundle's manifest
     # lists (policy/goal_query.py); false: the head's own release point.
     goal_query: bool = True
+    # Run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the drawer, take the
+    # object, close the drawer), switched by the grasp cycles, each at its family's pace.
+    phases: bool = False
 
 
 CONFIG = PolicyNodeConfig
@@ -143,6 +146,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.pace import action_period_ns, command_speed, resolve_pace
+    from runtime.phases import PHASED, Sequencer, phases_for
     from runtime import messages as m
 
     if not cfg.bundle:
@@ -191,7 +195,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
-        current: dict = {"text": None, "emb": None, "query": None}
+        current: dict = {"text": None, "emb": None, "query": None, "phases": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -214,6 +218,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     task, speed = command_speed(pace, best)
                     current.update(text=text, emb=bundle.embed(text),
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query))
+                    current["phases"] = (Sequencer(phases_for(task, pace), bundle.embed, current["emb"])
+                                         if cfg.phases and task in PHASED else None)
                     dt_ns = action_period_ns(data_hz, speed)
                     hz = 1e9 / dt_ns
                     q = current["query"]
@@ -223,7 +229,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                       f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
-                    current.update(text=None, emb=None, query=None)
+                    current.update(text=None, emb=None, query=None, phases=None)
                     why = ("the bundle records no trained instructions" if best is None else
                            f"closest trained instruction '{best}' has cosine {cos:.2f} < "
                            f"{cfg.similarity_threshold:.2f}")
@@ -267,6 +273,13 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     # g: the newest step's (position, request), as training counts from the recorded steps
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
                     prop = np.asarray(prop, np.float32)
+                    seq = current["phases"]
+                    if seq is not None and seq.update(stage):  # the next skill: its text, and its pace from now
+                        current["emb"] = seq.embedding
+                        dt_ns = action_period_ns(data_hz, seq.speed)
+                        hz = 1e9 / dt_ns
+                        event("policy_phase", "info", seq.describe(current["text"]), phase=seq.index,
+                              speed=seq.speed)
                     a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=stage,
                                    release=current["query"].release(imgs, prop, stage))[bundle.execute]
                     infer_ms.append((time.perf_counter() - t0) * 1e3)
