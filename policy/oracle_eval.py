@@ -168,13 +168,12 @@ def _init(settings: dict) -> None:
 
 
 def _job(seed: int) -> dict:
+    from policy.pace import Pace
     from runtime.evaluate import run_policy_episode
+    from runtime.phases import phases_for
     from sim.tasks import Holdout
 
     s, policy = _WORKER["settings"], _WORKER["policy"]
-    from policy.pace import Pace
-    from runtime.phases import phases_for
-
     offsets = {k: np.asarray(v) for k, v in s["offsets"].items()}
     points = DrawerPutPoints if s["task"] == "drawer_put" else TruePoints
     policy.truth = points(offsets, s["bias_cm"], seed, s["task"])
@@ -206,10 +205,9 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
     replaced_points(true_points)  # a bad name fails here, before any worker starts
     from datagen.view_anchors import CARRIES
     from datagen.views import measure_offsets
-    from runtime.eval_report import failure_table, markdown_table, summarise
-
     from policy.bundle_import import is_bundle
     from policy.pace import Pace, bundle_pace
+    from runtime.eval_report import failure_table, markdown_table, summarise
     from runtime.phases import phases_for
 
     run_dir, out_dir = Path(run_dir), Path(out_dir)
