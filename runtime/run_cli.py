@@ -199,8 +199,8 @@ def _run(args) -> int:
             events.append(msg)
             if msg.kind == "task_success":
                 succeeded["v"] = True
-            if msg.severity in ("warning", "error", "critical") or msg.kind.startswith("command") \
-                    or msg.kind.startswith("task"):
+            if msg.severity in ("warning", "error", "critical") or msg.kind.startswith(("command", "task")) \
+                    or msg.kind == "policy_phase":  # the operator sees which skill of a phased command runs
                 print(f"[{msg.severity}] {msg.kind}: {msg.message}", file=sys.stderr)
 
         la.bus.subscribe(B.SAFETY_EVENT, on_event)
