@@ -35,6 +35,8 @@ examples:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from runtime import phases
+
     ev = sub.add_parser("eval", help="closed-loop success of a policy bundle in sim (with 95%% CIs), vs the data "
                                      "collector on the same seeds",
                         description="Run a policy bundle in closed loop in sim through the runtime's controller and "
@@ -69,10 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--no-goal-query", action="store_true",
                     help="condition on the head's own release point where the bundle's goal query would replace it "
                          "(policy/goal_query.py): to measure what the query buys on the same seeds")
-    ev.add_argument("--phases", action="store_true",
-                    help="run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the "
-                         "drawer, take the object, close the drawer), switched by grasp cycles, each at its "
-                         "family's pace; other families as always")
+    ev.add_argument("--phases", action="store_true", help=f"{phases.HELP}; other families as always")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "

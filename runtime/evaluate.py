@@ -120,7 +120,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                           with_bundle_levels(controller or ControllerConfig(), bundle.manifest))
     rec = Recorder(ep, image_size=tuple(bundle.image_size))
     control_hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
-    dt_ns = action_period_ns(control_hz, phases[0].speed if phases else speed)
+    dt_ns = action_period_ns(control_hz, speed)  # with phases, the first tick sets it to its phase's
     per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
     To = bundle.obs_horizon
     budget = family.max_seconds * time_limit_factor

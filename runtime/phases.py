@@ -18,6 +18,11 @@ from dataclasses import dataclass
 from policy.pace import Pace
 
 
+# `sudd eval --phases`, `sudd run --phases`
+HELP = ("run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the drawer, take the "
+        "object, close the drawer), switched by the gripper's grasp cycles, each at its family's pace")
+
+
 @dataclass(frozen=True)
 class Phase:
     text: str | None  # None: the command itself

@@ -47,6 +47,8 @@ hardware bring-up checklist (before --allow-motion):
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from runtime import phases
+
     run = sub.add_parser("run", help="run the runtime: robot + policy (+ camera) nodes, on the sim or hardware",
                          description="Start every node as its own process over real Zenoh sessions, wait for "
                                      "them, run, then stop: the robot node's controlled stop first (Ctrl-C too).",
@@ -94,10 +96,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "stack goes (the manifest's goal_query; policy/goal_query.py: the shipped bundle stacks "
                           "8/20 with it, 1/20 without)")
     run.add_argument("--phases", action="store_true",
-                     help="run a long command as the skills it is made of, switched by the gripper's grasp cycles, "
-                          "each at its family's pace (runtime/phases.py; drawer_put: open the drawer, take the "
-                          "object, close the drawer). Experimental: the shipped bundle does not yet find drawer_put's "
-                          "object on its own (policy/EXPERIMENTS.md, \"drawer_put as three skills\")")
+                     help=f"{phases.HELP}. Experimental: the shipped bundle does not yet find drawer_put's object on "
+                          "its own (policy/EXPERIMENTS.md, \"drawer_put as three skills\")")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)

@@ -26,7 +26,12 @@ def float16_weights(run: Path, state: dict) -> dict:
     """`state` (a checkpoint's tensors of `run`'s model) with its float weights in float16 and its buffers as they
     are: the proprio stats in them must stay the run's stats.npz, which a warm start takes (rounded, a bundle's
     graphs disagree with its stats by 1e-3 and `bundle_import` refuses to rebuild it). pull.py uses it too."""
-    buffers = {name for name, _ in load_run_model(run)[0].named_buffers()}
+    return half_weights(load_run_model(run)[0], state)
+
+
+def half_weights(model: torch.nn.Module, state: dict) -> dict:
+    """`state` with its float tensors in float16, except `model`'s buffers (see float16_weights)."""
+    buffers = {name for name, _ in model.named_buffers()}
     return {k: v.half() if v.is_floating_point() and k not in buffers else v for k, v in state.items()}
 
 
@@ -60,8 +65,7 @@ def pack_bundle(bundle: Path) -> Path:
     (dst / "config.json").write_text(json.dumps(manifest["config"], indent=2))
     (dst / "dataset.json").write_text(json.dumps(manifest["data"], indent=2))
     normalizer.save(dst / "stats.npz")
-    buffers = {name for name, _ in model.named_buffers()}
-    ema = {k: v.half() if v.is_floating_point() and k not in buffers else v for k, v in model.state_dict().items()}
+    ema = half_weights(model, model.state_dict())
     step = int(manifest["training"]["step"])
     torch.save({"step": step, "total_steps": step, "model": ema, "ema": {"model": ema, "updates": 0},
                 "config": manifest["config"], "torch": torch.__version__}, dst / "checkpoints" / f"step_{step:08d}.pt")

@@ -39,27 +39,25 @@ def main() -> None:
     ov = {**base, "batch_size": 256, "lr": 5e-4, "warmup_steps": 500, "num_workers": 7, "amp": device == "cuda",
           "checkpoint_every": 1000, "keep_checkpoints": 2, "log_every": 50, "val_fraction": 0.05, "val_every": 2000,
           **extra}
-    if steps:
-        print(out.name, json.dumps(train(data, config, out, steps=int(steps), embedder=embed, overrides=ov,
-                                         device=device, progress=True, init_from=init_from,
-                                         encoders_from=encoders_from)), flush=True)
-        (out / "plan.json").write_text(json.dumps({"steps": steps, "overrides": ov}))
-        (out / "DONE").write_text("ok")
-        return
-    # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
-    probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
-    train(data, config, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device, progress=True,
-          init_from=init_from, encoders_from=encoders_from)
-    rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
-    rates = [r["steps_per_s"] for r in rows if "steps_per_s" in r]  # validation rows have none
-    rate = float(np.median(rates[len(rates) // 2:]))
-    load_s = time.time() - t0 - probe / rate
-    steps = int(max(probe + 100, rate * (deadline - time.time() - load_s - 30)))
-    (out / "plan.json").write_text(json.dumps({"rate": rate, "load_s": load_s, "steps": steps, "overrides": ov}))
-    print(out.name, json.dumps(train(data, config, out, steps=steps, embedder=embed, overrides=ov, device=device,
-                                     progress=True)), flush=True)
+    warm = {"init_from": init_from, "encoders_from": encoders_from}
+    plan = {"steps": steps, "overrides": ov}
+    if not steps:
+        # a short first leg measures the speed (warm-up only, so the schedule's length does not matter yet)
+        probe, t0 = int(os.environ.get("LEASE_PROBE_STEPS", 300)), time.time()
+        train(data, config, out, steps=10**6, stop_at=probe, embedder=embed, overrides=ov, device=device,
+              progress=True, **warm)
+        rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+        rates = [r["steps_per_s"] for r in rows if "steps_per_s" in r]  # validation rows have none
+        rate = float(np.median(rates[len(rates) // 2:]))
+        load_s = time.time() - t0 - probe / rate
+        steps = int(max(probe + 100, rate * (deadline - time.time() - load_s - 30)))
+        plan = {"rate": rate, "load_s": load_s, "steps": steps, "overrides": ov}
+        (out / "plan.json").write_text(json.dumps(plan))
+        warm = {}  # the main leg resumes the probe's checkpoint
+    print(out.name, json.dumps(train(data, config, out, steps=int(steps), embedder=embed, overrides=ov,
+                                     device=device, progress=True, **warm)), flush=True)
+    (out / "plan.json").write_text(json.dumps(plan))
     (out / "DONE").write_text("ok")
-
 
 if __name__ == "__main__":
     main()
