@@ -177,6 +177,11 @@ def test_injected_protective_stop_holds_without_crash(bundle):
     rob = _clean_exit(la)
     assert all(c == 0 for c in la.exit_codes.values())
     assert rob["protective_stopped"] and rob["events"].get("protective_stop", 0) >= 1
+    # the cause reaches the operator once, as an event and in the report
+    causes = [e.message for e in w.events if e.kind == "sim_protective_stop"]
+    assert len(causes) == 1 and "injected fault" in causes[0], causes
+    assert [s["reason"] for s in rob["protective_stops"]] == ["injected fault (fault_protective_stop_s)"]
+    assert rob["protective_stops"][0]["after_s"] >= 2.5
     assert after and max(float(np.max(np.abs(s.qd))) for s in after) < 1e-3
     assert any(int(s.safety_mode) != int(m.SafetyMode.NORMAL) for s in after)
 

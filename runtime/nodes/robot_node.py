@@ -255,6 +255,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
         next_est = t0 + 5.0
         injected_ps = injected_cam = timed_out = False
         q_start = None
+        stop_seen = None  # the sim stop already reported
+        report["protective_stops"] = []
         while not ctx.should_stop():
             now = time.monotonic()
             s = arm.state()
@@ -263,6 +265,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
             pub_state.publish(m.RobotState.from_arm_state(s))
             pub_grip.publish(m.GripperStatus.from_gripper_state(gripper.state()))
             flush_events()
+            if rig is not None:
+                stop_seen = _note_sim_stop(rig, stop_seen, now - t0, report, event)
             if episode is not None and now >= next_check and not report["task_success"]:
                 next_check = now + cfg.success_check_s
                 with rig.lock:
@@ -352,7 +356,11 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 log.exception("sim_render close failed")
                 report["sim_render"] = {"error": repr(exc)}
         if rig is not None:
+            if "protective_stops" in report:  # a stop in the controlled stop, after the main loop
+                _note_sim_stop(rig, stop_seen, time.monotonic() - t0, report, None)
             report["protective_stopped"] = rig.protective_stopped
+            # physics behind the wall clock: the arm lags its targets, unlike a real UR's 500 Hz controller
+            report["sim_physics"] = {"rate_hz": round(rig.achieved_rate_hz(), 1), "overruns": rig.overruns}
             rig.close()
         elif cfg.robot_ip:
             for dev, close in ((arm, "close"), (gripper, "disconnect")):
@@ -366,6 +374,21 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
             report["latency_ms"] = {k: percentiles(v, 1e-6) for k, v in chunk_lat.items()}
             bus.close()
     return report
+
+
+def _note_sim_stop(rig, seen: str | None, after_s: float, report: dict, event) -> str | None:
+    """Record a new protective stop of the sim twin with its cause (which contact, how hard, how fast: what
+    an operator needs, and what a real UR tells only on its pendant) once; returns the stop now seen."""
+    if not rig.protective_stopped:
+        return None
+    reason = rig.stop_reason
+    if not reason or reason == seen:
+        return seen
+    report["protective_stops"].append({"after_s": round(after_s, 3), "reason": reason,
+                                       "tcp_speed_m_s": rig.stop_tcp_speed})
+    if event is not None:
+        event("sim_protective_stop", "error", f"the sim's safety system stopped the arm: {reason}", after_s=after_s)
+    return reason
 
 
 def main(argv: list[str] | None = None) -> int:
