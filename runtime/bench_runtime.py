@@ -5,7 +5,9 @@
 * `bus`: one Zenoh hop of a 320x240 RGB frame (runtime.bench_bus, shared memory when available), measured
   before the stack starts, so nothing else competes for the CPU.
 * `controller`: period and |jitter| of ControllerLoop at 500 Hz on the realtime SimRig (its telemetry), from
-  the robot node of the full stack below (so it runs next to physics, cameras, IK and the policy process).
+  the robot node of the full stack below (so it runs next to physics, cameras, IK and the policy process),
+  and how far the arm is from its plan (`track_err`, joints): late cycles step the periods they missed
+  (ControllerConfig.catch_up_periods), so a loaded host costs timing, not tracking.
 * `latency`: the whole sim stack (`sudd run --sim` processes, real Zenoh sessions) with the given bundle:
   per chunk, capture time of its observation -> the policy node publishes it (`obs_to_publish`) -> the
   robot node receives it (`obs_to_receive`) -> ControllerLoop.submit accepted it (`obs_to_accepted`, IK
@@ -112,7 +114,8 @@ def run_runtime_bench(quick: bool = False, bundle: str | Path | None = None) -> 
     cs = rob.get("controller_summary", {})
     result["controller_500hz"] = {k: cs.get(k) for k in ("cycles", "rate_hz", "period_p50_ms", "period_p99_ms",
                                                           "jitter_p50_ms", "jitter_p99_ms", "compute_p50_ms",
-                                                          "compute_p99_ms", "on_time")}
+                                                          "compute_p99_ms", "on_time", "track_err_p50_mrad",
+                                                          "track_err_max_mrad")}
     lat = rob.get("latency_ms", {})
     result["latency_ms"] = {"obs_to_publish": lat.get("publish"), "obs_to_receive": lat.get("receive"),
                             "obs_to_accepted": lat.get("accepted"), "inference": pol.get("inference_ms")}

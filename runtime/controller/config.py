@@ -24,6 +24,12 @@ Why these defaults:
   presses: the fingers reach 150-770 N within a physics step of touching the front, before any measured force
   can act. With it, famfz_w2 completed 8/20 drawer_open and 8/20 drawer_close on seeds 100000-100019, against
   10/20 and 10/20 without (the same 6 ms latency; policy/EXPERIMENTS.md, "Contact yield").
+* `catch_up_periods` 5: the filter's stream moves one period of motion per step. A cycle that wakes late (a
+  loaded host: 75-90 % of the cycles on time with the sim twin, policy and renderer on 2 cores) used to step
+  it once, so the arm fell behind its plan and the filter's catch-up then ran it faster than planned, into the
+  drawer handle: with 20 % of the cycles skipped in lockstep, drawer_open fell from 7/8 to 3/8, five of the
+  failures contact-force stops (policy/EXPERIMENTS.md, "Late control cycles"). Stepping the missed periods
+  (each within every limit) keeps the stream on the clock; past 5 periods (10 ms at 500 Hz) a gap is a stall.
 * `reopen_empty_grasp` on, `reopen_hold` 2 s: on 120 held-out heavy-DR seeds the shipped policy completed
   78 pick-and-places with it against 64 without (14 gained, none lost); 2 s is about one approach.
 """
@@ -88,6 +94,9 @@ class ControllerConfig:
     rest_speed: float = field(default=2e-3, metadata=spec(0.0, 0.1, "rad/s", doc="at rest below this"))
     late_tolerance: float = field(default=0.25, metadata=spec(0.0, 10.0,
                                   doc="a cycle starting later than this fraction of a period is late"))
+    catch_up_periods: int = field(default=5, metadata=spec(0, 25, doc=(
+        "a cycle up to this many periods late first steps the safety filter through the periods it missed, "
+        "so the commanded stream keeps the clock; 0: one filter step per cycle, however late")))
     telemetry_size: int = field(default=4096, metadata=spec(16, 1_000_000))
     max_events: int = field(default=1000, metadata=spec(10, 1_000_000))
 

@@ -45,6 +45,10 @@ from sim.devices import SafetyMode
 _ROBOT_HALTED = (SafetyMode.SAFEGUARD_STOP, SafetyMode.VIOLATION, SafetyMode.FAULT, SafetyMode.RECOVERY)
 
 
+class _Refused(Exception):
+    """The safety filter refused the measurement (its cause chained); other errors are bugs and crash."""
+
+
 class CycleResult(NamedTuple):
     now: float  # s, cycle time (host monotonic / rig clock)
     desired: np.ndarray | None  # planned joint target (with any contact yield) before safety; None if it failed
@@ -185,6 +189,9 @@ class ControllerLoop(LoopRunner):
             self._hold_q = np.array(s.q, dtype=float)
         L = self._update_latency(now)
         t_eval = now + L
+        # the periods this cycle woke too late for, on the plan they had (a pending chunk starts at t_eval)
+        for k in range(self._missed_periods(period), 0, -1):
+            self._filter_step(s, now - k * self.period, L, halted)
         jc, self._pending = self._pending, None
         if jc is not None and stops.allows_motion and not self._stopping:
             try:
@@ -194,30 +201,12 @@ class ControllerLoop(LoopRunner):
                                                   f"{t_eval - jc.times[0]:.3f} s after its first", "info")
             except ChunkRejected as exc:
                 self._emit(exc.kind, now, str(exc), "warning")
-        sample = self.timeline.sample(t_eval)
-        if sample is None:
-            desired = self._hold_q
-            ct = self._cmd_time
-        else:
-            desired = np.array(sample[0])
-            self._last = (t_eval, desired, np.array(sample[1]), np.array(sample[2]))
-            ct = now if self._stopping else min(now, self.timeline.end_time - L)
-        if stops.allows_motion and not halted:
-            desired, change = self.contact.apply(desired, s.tcp_force)
-            if change == "start":
-                self._emit("contact_yield", now, f"tool force {np.linalg.norm(s.tcp_force[:3]):.0f} N > "
-                                                 f"{cfg.contact_yield_n:.0f} N: the target gives way", "info")
-            elif change == "end":
-                self._emit("contact_released", now, "the target is back on the plan", "info")
-        ct = max(ct, self._cmd_time)  # never out of order
-        self._cmd_time = ct
         try:
-            r = safety.step(desired, s.q, s.qd, now, ct)
+            desired, ct, r = self._filter_step(s, now, L, halted)
             self._filter_started = True
-        except Exception as exc:  # only a malformed first measurement raises; nothing safe to send
-            self._emit("driver_error", now, f"safety filter refused the measurement: {exc!r}", "error")
-            return CycleResult(now, desired, None, False, ct, s)
-        self._events.extend(r.events)
+        except _Refused as exc:  # only a malformed first measurement raises; nothing safe to send
+            self._emit("driver_error", now, f"safety filter refused the measurement: {exc.__cause__!r}", "error")
+            return CycleResult(now, None, None, False, self._cmd_time, s)
         sent = False
         if not arm_stopped and not halted and stops.state != "protective_stop":
             try:
@@ -240,6 +229,44 @@ class ControllerLoop(LoopRunner):
         self.telemetry.record(now, period, time.perf_counter() - wall, err, True, sent)
         self.ready = True
         return CycleResult(now, desired, r, sent, ct, s)
+
+    def _missed_periods(self, period: float) -> int:
+        """Whole periods between the previous cycle and this one beyond the one expected, up to
+        cfg.catch_up_periods. Why: each filter step moves the commanded stream one period of motion; a late
+        cycle that stepped once left the arm behind its plan, and the filter's catch-up then ran it faster
+        than planned (ControllerConfig's docstring). Longer gaps are stalls: the stream lags and catches up."""
+        if not self._filter_started or not period > 1.5 * self.period:
+            return 0
+        return min(int(round(period / self.period)) - 1, self.cfg.catch_up_periods)
+
+    def _filter_step(self, s, t: float, L: float, halted: bool):
+        """One safety-filter step of the commanded stream at time t: the plan sampled at t + L (or the hold),
+        the contact yield, the watchdog's command time. Returns (desired, command time, FilterResult)."""
+        stops = self.safety.stops
+        t_eval = t + L
+        sample = self.timeline.sample(t_eval)
+        if sample is None:
+            desired = self._hold_q
+            ct = self._cmd_time
+        else:
+            desired = np.array(sample[0])
+            self._last = (t_eval, desired, np.array(sample[1]), np.array(sample[2]))
+            ct = t if self._stopping else min(t, self.timeline.end_time - L)
+        if stops.allows_motion and not halted:
+            desired, change = self.contact.apply(desired, s.tcp_force)
+            if change == "start":
+                self._emit("contact_yield", t, f"tool force {np.linalg.norm(s.tcp_force[:3]):.0f} N > "
+                                               f"{self.cfg.contact_yield_n:.0f} N: the target gives way", "info")
+            elif change == "end":
+                self._emit("contact_released", t, "the target is back on the plan", "info")
+        ct = max(ct, self._cmd_time)  # never out of order
+        self._cmd_time = ct
+        try:
+            r = self.safety.step(desired, s.q, s.qd, t, ct)
+        except Exception as exc:
+            raise _Refused() from exc
+        self._events.extend(r.events)
+        return desired, ct, r
 
     def _update_latency(self, now: float) -> float:
         if self.cfg.adapt_latency and now >= self._next_estimate:
