@@ -31,6 +31,7 @@ examples:
   sudd eval --policy out/bundle --task pick_place --episodes 30 --suite heldout --holdout-color purple
   sudd eval --policy out/bundle --task pick_place --episodes 60 --latency-ms 6 --no-collector  # repeatable
   sudd eval --policy out/bundle --task pick_place --episodes 20 --filmstrips  # see each failure, frame by frame
+  sudd eval --policy out/bundle --task drawer_open --episodes 10 --realtime --no-collector  # as deployed, live
 """
 
 
@@ -79,6 +80,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--controller", type=Path, metavar="FILE.toml",
                     help="chunk controller settings (as sudd run --controller): a TOML file of "
                          "runtime/controller/config.py's fields; recorded in summary.json")
+    ev.add_argument("--realtime", action="store_true",
+                    help="run the policy's episodes through the stack `sudd run --sim` starts (processes, Zenoh, "
+                         "the 500 Hz controller next to the physics and renderer) in real time, one after another, "
+                         "instead of lockstep; the collector's stay lockstep. Slower (wall-clock episodes), and the "
+                         "figure for this host: compare it with the lockstep one on the same seeds")
     ev.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     ev.add_argument("--out", type=Path, default=Path("out/eval"), help="results directory (default out/eval)")
     ev.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -96,6 +102,9 @@ def _eval(args) -> int:
         raise ValueError(f"--latency-ms {args.latency_ms}: expected 0 <= MS < 1000 (the simulated inference lag of "
                          "one chunk); leave it out to use the measured time")
     check_speed_spec(args.speed)
+    if args.realtime and (args.latency_ms is not None or args.filmstrips):
+        raise ValueError("--realtime: the lag is the stack's own and there are no filmstrips of it; leave out "
+                         "--latency-ms and --filmstrips (they are for the lockstep eval)")
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     pace = resolve_pace(bundle.manifest, args.speed)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
@@ -112,23 +121,25 @@ def _eval(args) -> int:
         raise ValueError(f"--suite heldout: {args.policy}'s data recorded no held-out colour or shape; give "
                          "--holdout-color/--holdout-shape (what `sudd datagen` kept out)")
     jobs = []  # seed-major: an eval stopped early (Ctrl-C, a deadline) has every task at about as many seeds
+    mode = "realtime" if args.realtime else "lockstep"
     for suite in suites:
         for i in range(args.episodes):
             for task in tasks:
                 seed = args.seed_offset + i
-                jobs.append({"suite": suite, "task": task, "seed": seed, "who": "policy"})
+                jobs.append({"suite": suite, "task": task, "seed": seed, "who": "policy", "mode": mode})
                 if not args.no_collector and suite != "paraphrase":
-                    jobs.append({"suite": suite, "task": task, "seed": seed, "who": "collector"})
+                    jobs.append({"suite": suite, "task": task, "seed": seed, "who": "collector",
+                                 "mode": "lockstep"})
     args.out.mkdir(parents=True, exist_ok=True)
     results_path = args.out / "results.jsonl"
     done = _read(results_path)
-    key = lambda j: (j["suite"], j["task"], j["seed"], j["who"])  # noqa: E731
+    key = lambda j: (j["suite"], j["task"], j["seed"], j["who"], j.get("mode", "lockstep"))  # noqa: E731
     have = {key(r) for r in done}
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
-                "phases": args.phases,
+                "phases": args.phases, "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
@@ -170,6 +181,9 @@ def _eval(args) -> int:
         query = "Goal query: off (--no-goal-query)"
     else:
         query = f"Goal query (policy/goal_query.py) for: {', '.join(bundle.goal_query.families)}"
+    if args.realtime:
+        query += (". Realtime (runtime/eval_realtime.py): the policy's episodes through the `sudd run --sim` "
+                  "stack in real time; the time column is wall seconds")
     if args.phases:
         query += ". Phases (runtime/phases.py): drawer_put as open the drawer, take the object, close the drawer"
     (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
@@ -198,6 +212,10 @@ def _read(path: Path) -> list[dict]:
 
 
 def _run_jobs(jobs: list[dict], settings: dict, workers: int):
+    if settings.get("realtime"):  # the collector's episodes in lockstep first, then the live ones one by one
+        yield from _run_jobs([j for j in jobs if j["mode"] != "realtime"], {**settings, "realtime": False}, workers)
+        yield from _realtime_jobs([j for j in jobs if j["mode"] == "realtime"], settings)
+        return
     if workers <= 1:
         _init(settings)
         for j in jobs:
@@ -207,6 +225,18 @@ def _run_jobs(jobs: list[dict], settings: dict, workers: int):
 
     with mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(settings,)) as pool:
         yield from pool.imap_unordered(_job, jobs)
+
+
+def _realtime_jobs(jobs: list[dict], settings: dict):
+    from runtime.controller import ControllerConfig
+    from runtime.eval_realtime import run_realtime_episode
+    from sim.config import load_config
+
+    controller = load_config(ControllerConfig, settings["controller"])
+    for j in jobs:
+        t0 = time.perf_counter()
+        out = run_realtime_episode(j, settings, controller)
+        yield {**j, **out, "wall_s": round(time.perf_counter() - t0, 2)}
 
 
 _WORKER: dict = {}

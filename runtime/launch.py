@@ -76,9 +76,9 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
 
     man = bundle_manifest(bundle)
     held = man.get("data", {}).get("holdout") or {}  # what its training data kept out (as `sudd eval`)
-    rcfg = RobotNodeConfig(task=task, seed=seed, dr=dr, cameras=tuple(man["cameras"]),
-                           image_size=tuple(man["image_size"]), holdout_colors=tuple(held.get("colors", ())),
-                           holdout_shapes=tuple(held.get("shapes", ())), **robot_overrides)
+    rcfg = RobotNodeConfig(**{"task": task, "seed": seed, "dr": dr, "cameras": tuple(man["cameras"]),
+                              "image_size": tuple(man["image_size"]), "holdout_colors": tuple(held.get("colors", ())),
+                              "holdout_shapes": tuple(held.get("shapes", ())), **robot_overrides})
     pcfg = PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
                             goal_query=goal_query, phases=phases)
     return [NodeSpec(ROBOT, "runtime.nodes.robot_node", rcfg), NodeSpec("policy", "runtime.nodes.policy_node", pcfg)]

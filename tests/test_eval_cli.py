@@ -131,3 +131,30 @@ def test_ctrl_c_stops_an_evaluation_cleanly_and_keeps_its_finished_episodes(tmp_
     lines = results.read_text().splitlines()
     assert 1 <= len(lines) < 12 and all(json.loads(x)["who"] == "policy" for x in lines)
     assert not (out / "summary.json").exists()
+
+
+def test_eval_cli_realtime_runs_the_policy_through_the_live_stack(untrained_bundle, tmp_path, capsys):
+    from runtime.cli import main
+
+    out = tmp_path / "live"
+    args = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
+            "--suite", "seen", "--suite", "paraphrase", "--time-limit-factor", "0.05", "--realtime", "--out", str(out)]
+    assert main(args) == 0
+    recs = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    assert sorted(r["suite"] for r in recs) == ["paraphrase", "seen"]
+    for r in recs:
+        assert r["mode"] == "realtime" and not r["success"] and r["end"] == "timeout", r
+        live = r["realtime"]
+        assert 0.0 < live["controller_on_time"] <= 1.0 and live["controller_rate_hz"] > 100.0, live
+        assert set(live["exit_codes"].values()) == {0}, live  # every node of the stack ended cleanly
+        assert r["sim_seconds"] >= 0.9 * 0.05 * 30  # it ran the family's time limit (30 s x 0.05) live
+    para = next(r for r in recs if r["suite"] == "paraphrase")
+    assert para["command"] != para["instruction"]  # said in the unseen phrasing, as the lockstep eval does
+    assert "Realtime" in (out / "results.md").read_text()
+    assert main(args) == 0 and len((out / "results.jsonl").read_text().splitlines()) == 2  # resumed: nothing new
+    # the lockstep run of the same seeds into the same directory is a different run, not "already done"
+    assert main([a for a in args if a != "--realtime"]) == 0
+    assert len((out / "results.jsonl").read_text().splitlines()) == 4
+    capsys.readouterr()
+    assert main(args + ["--latency-ms", "6"]) == 2  # the live stack's lag is its own
+    assert "--latency-ms" in capsys.readouterr().err

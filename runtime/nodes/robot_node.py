@@ -59,6 +59,7 @@ class RobotNodeConfig:
     # (`sudd datagen --holdout-color`), so `sudd run --sim --seed K` builds the scene `sudd eval` runs as seed K.
     holdout_colors: tuple[str, ...] = ()
     holdout_shapes: tuple[str, ...] = ()
+    holdout_split: str = "train"  # "eval_heldout": the target only of them (`sudd eval --realtime --suite heldout`)
     cameras: tuple[str, ...] = ("scene", "wrist")  # the bundle's camera names (sim cameras to publish)
     image_size: tuple[int, int] = (128, 128)  # (H, W) of the sim cameras
     camera_fps: float = 20.0  # twice the policy rate: the policy always finds a frame a few ms old
@@ -86,7 +87,7 @@ CONFIG = RobotNodeConfig
 def _holdout(cfg: RobotNodeConfig):
     from sim.tasks import Holdout
 
-    return Holdout(colors=tuple(cfg.holdout_colors), shapes=tuple(cfg.holdout_shapes))
+    return Holdout(colors=tuple(cfg.holdout_colors), shapes=tuple(cfg.holdout_shapes), split=cfg.holdout_split)
 
 
 def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:

@@ -60,7 +60,8 @@ def _build(task: str, seed: int, dr: str, holdout: dict):
     from sim.tasks import Holdout
 
     return build_episode(task, seed, dr, "fast", holdout=Holdout(colors=tuple(holdout.get("colors", ())),
-                                                                    shapes=tuple(holdout.get("shapes", ()))))
+                                                                    shapes=tuple(holdout.get("shapes", ())),
+                                                                    split=holdout.get("split", "train")))
 
 
 def serve(cfg: dict, conn) -> None:
@@ -167,7 +168,8 @@ class SimRenderProcess:
         self._conn, child = ctx.Pipe(duplex=True)
         cfg = {"bus": config_to_dict(bus_settings), "task": task, "seed": int(seed), "dr": dr,
                "cameras": dict(cameras), "image_size": list(image_size),
-               "holdout": {"colors": list(holdout.colors), "shapes": list(holdout.shapes)} if holdout else {}}
+               "holdout": {"colors": list(holdout.colors), "shapes": list(holdout.shapes),
+                           "split": holdout.split} if holdout else {}}
         self.proc = ctx.Process(target=serve, args=(cfg, child), name="sudd-sim-render", daemon=True)
         self.proc.start()
         child.close()
