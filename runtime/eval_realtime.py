@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from runtime.controller import ControllerConfig
 
 _ENDING = ("task_success", "sim_protective_stop")
@@ -36,8 +38,6 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
     split = "eval_heldout" if job["suite"] == "heldout" else "train"
     command = ""
     if job["suite"] == "paraphrase":  # the same phrasing the lockstep eval gives this seed
-        import numpy as np
-
         ep = build_episode(task, seed, settings["dr"], "fast", holdout=Holdout(colors=tuple(h["colors"]),
                                                                                   shapes=tuple(h["shapes"])))
         command = ep.task.paraphrase(ep.instance, np.random.default_rng([seed, 7]))
@@ -62,8 +62,9 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
         la.say(text, "eval")
         la.monitor(duration_s=limit_s, until=lambda: bool(seen))
     rob, pol = la.reports.get("robot", {}), la.reports.get("policy", {})
-    success = bool(rob.get("task_success"))
     stops = rob.get("protective_stops") or []
+    # as in lockstep, a protective stop ends the episode: a drawer the impact pushed open after it is no success
+    success = bool(rob.get("task_success")) and (not stops or rob.get("success_after_s", 0.0) < stops[0]["after_s"])
     if success:
         end = "success"
     elif stops or "sim_protective_stop" in seen:
