@@ -98,7 +98,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
 
     report: dict = {"mode": "hardware" if cfg.robot_ip else "sim", "chunks_received": 0, "chunks_accepted": 0,
                     "chunks_rejected": 0, "frames_published": {}, "events": {}, "task_success": False}
-    rig = episode = None
+    rig = episode = sensor = None
     cams: dict = {}
     render = None  # sim_render.SimRenderProcess (render_process)
     bus = None
@@ -137,6 +137,10 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                                           {name: SIM_CAMERAS[name] for name in cfg.cameras}, cfg.image_size,
                                           cfg.camera_fps, holdout=_holdout(cfg))
             episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast", holdout=_holdout(cfg))
+            if render is None:  # drawn first from the sensor stream, as datagen.recorder and sim_render do
+                from sim.randomize import sample_sensor_params
+
+                sensor = sample_sensor_params(episode.dr.sensor, episode.rngs.sensor)
             rig = SimRig(episode.world, "realtime")
             raw_arm, gripper = rig.arm, rig.gripper
             variant = episode.world.variant.name
@@ -201,6 +205,12 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
         def camera_pub(name: str, cam) -> None:
             pub = bus.publisher(B.camera_color(name))
             report["frames_published"][name] = 0
+            noise = None
+            if sensor is not None:  # the episode's sensor DR, as sim_render and its recorded frames have it
+                from sim.randomize import corrupt_image
+
+                rng = np.random.default_rng([cfg.seed, 13, len(report["frames_published"])])
+                noise = lambda img: corrupt_image(img, sensor, rng)  # noqa: E731
             while not quit_.is_set():
                 try:
                     f = cam.read(timeout_s=0.5)
@@ -209,7 +219,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 if not cams_on.is_set():
                     continue
                 pub.publish(m.CameraFrame(camera_id=name, intrinsics=f.intrinsics, capture_ns=f.capture_ns,
-                                          color=f.color, frame_seq=f.seq))
+                                          color=f.color if noise is None else noise(f.color), frame_seq=f.seq))
                 report["frames_published"][name] += 1
 
         for name, cam in cams.items():

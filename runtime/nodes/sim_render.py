@@ -6,8 +6,10 @@ at start-up), then waits for physics snapshots. The robot node's snapshot thread
 the camera rate (`mj_getState(..., mjSTATE_INTEGRATION)` under the rig lock, a few microseconds) and sends it
 with its time (the rig's `sample_ns`: the monotonic time of that physics state, as SimCamera stamps it)
 through a Pipe. This process sets it (`mj_setState` + `mj_forward`), renders every camera with one
-CameraRenderer (colour only, no shadows, as the in-process SimCamera with CameraNoiseConfig(shadows=False))
-and publishes CameraFrame messages itself, with capture time = the snapshot's time. When it falls behind it
+CameraRenderer (colour only, no shadows, as the in-process SimCamera with CameraNoiseConfig(shadows=False)),
+applies the episode's sensor DR (colour gain and pixel noise: the parameters its recorded frames and the
+lockstep eval's have for that seed, so a live seed K shows the policy what `sudd eval` seed K does) and
+publishes CameraFrame messages itself, with capture time = the snapshot's time. When it falls behind it
 renders only the newest snapshot (a camera with a full queue drops frames).
 
 Protocol on the duplex Pipe: child -> parent `("ready", {...})` once, then `("report", {...})` at exit;
@@ -85,6 +87,7 @@ def serve(cfg: dict, conn) -> None:
         from runtime import bus as B
         from runtime import messages as m
         from runtime.nodes.common import BusSettings, config_from_dict, percentiles
+        from sim.randomize import corrupt_image, sample_sensor_params
         from sim.render import CameraRenderer
 
         episode = _build(cfg["task"], int(cfg["seed"]), cfg["dr"], cfg.get("holdout", {}))
@@ -95,6 +98,9 @@ def serve(cfg: dict, conn) -> None:
         H, W = (int(v) for v in cfg["image_size"])
         cams: dict[str, str] = dict(cfg["cameras"])
         renderer = CameraRenderer(types.SimpleNamespace(model=model, data=data), W, H, shadows=False)
+        # the episode's sensor DR (gain, pixel noise), as its recorded and lockstep frames have it: the same
+        # parameters for a seed, drawn first from its sensor stream as datagen.recorder does
+        sensor = sample_sensor_params(episode.dr.sensor, episode.rngs.sensor)
         intr = {name: renderer.intrinsics(mj) for name, mj in cams.items()}
         bus = config_from_dict(BusSettings, cfg["bus"]).open()
         pubs = {name: bus.publisher(B.camera_color(name)) for name in cams}
@@ -123,7 +129,7 @@ def serve(cfg: dict, conn) -> None:
             mujoco.mj_setState(model, data, state, spec)
             mujoco.mj_forward(model, data)
             for name, mj in cams.items():
-                color = renderer.rgb(mj)
+                color = corrupt_image(renderer.rgb(mj), sensor, episode.rngs.sensor)
                 pubs[name].publish(m.CameraFrame(camera_id=name, intrinsics=intr[name], capture_ns=capture_ns,
                                                  color=np.ascontiguousarray(color), frame_seq=seq))
                 report["frames_published"][name] += 1
