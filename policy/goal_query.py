@@ -119,6 +119,11 @@ class GoalQuery:
     def active(self) -> bool:
         return self._query is not None
 
+    @property
+    def settled(self) -> bool:
+        """The point is held from now on (the first `ticks` inferences asked)."""
+        return self._query is not None and len(self._points) >= self.spec.ticks
+
     def release(self, images: dict, proprio: np.ndarray, stage: int = 0) -> np.ndarray | None:
         """The (4,) release_point input for this inference (x, y, z base frame, flag 1), or None (the head's)."""
         if self._query is None:

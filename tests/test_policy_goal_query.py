@@ -171,8 +171,10 @@ def test_the_query_asks_the_first_ticks_then_holds_their_median(exported):
     images, proprio = _observation(b.b)
     q = GoalQuery(b, STACK, "stack")
     assert q.active and q.swapped == "stack the blue block on the red block"
-    got = [q.release(images, proprio) for _ in range(5)]
-    assert len(b.asked) == 2  # ticks = 2, then held
+    got = [q.release(images, proprio)]
+    assert not q.settled  # one of two asked
+    got += [q.release(images, proprio) for _ in range(4)]
+    assert q.settled and len(b.asked) == 2  # ticks = 2, then held (the policy node says the point once here)
     np.testing.assert_array_equal(b.asked[0], b.b.embed(q.swapped))
     offset = np.asarray(b.goal_query.offset_m)
     np.testing.assert_allclose(got[0][:3], [0.1, 0.5, 0.0] + offset, atol=1e-6)

@@ -280,8 +280,14 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         hz = 1e9 / dt_ns
                         event("policy_phase", "info", seq.describe(current["text"]), phase=seq.index,
                               speed=seq.speed)
+                    q = current["query"]
+                    settled = q.settled
                     a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=stage,
-                                   release=current["query"].release(imgs, prop, stage))[bundle.execute]
+                                   release=q.release(imgs, prop, stage))[bundle.execute]
+                    if q.settled and not settled:  # where the command's goal was found, once per command
+                        report["goal_point"] = [round(float(v), 4) for v in q.point]
+                        event("policy_goal_point", "info", "goal asked as '{}': at ({:.3f}, {:.3f}, {:.3f}) m in "
+                              "the base frame".format(q.swapped, *q.point), x=q.point[0], y=q.point[1], z=q.point[2])
                     infer_ms.append((time.perf_counter() - t0) * 1e3)
                     tk = (t_obs + dt_ns * (1 + np.arange(len(a)))).astype(np.int64)
                     pub_chunk.publish(m.ActionChunk(actions=a.astype(np.float64), times_ns=tk, obs_time_ns=int(t_obs)))
