@@ -209,7 +209,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
             if sensor is not None:  # the episode's sensor DR, as sim_render and its recorded frames have it
                 from sim.randomize import corrupt_image
 
-                rng = np.random.default_rng([cfg.seed, 13, len(report["frames_published"])])
+                rng = np.random.default_rng([cfg.seed, 13, list(cfg.cameras).index(name)])  # one stream a camera
                 noise = lambda img: corrupt_image(img, sensor, rng)  # noqa: E731
             while not quit_.is_set():
                 try:
