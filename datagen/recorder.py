@@ -12,7 +12,7 @@ import numpy as np
 from datagen.schema import (ACTION_DIM, CAMERAS, CONTROL_HZ, IMAGE_SIZE, PERTURBATION, PERTURBED, PROPRIO_DIM,
                             EpisodeData, rot6d)
 from sim.kinematics import Kinematics
-from sim.randomize import corrupt_image, sample_sensor_params
+from sim.randomize import corrupt_image, episode_sensor_params
 from sim.render import CameraRenderer
 from sim.robot import TCP_OFFSET_Z, WRIST_CAMERA
 from sim.scene import SCENE_CAMERA
@@ -30,7 +30,7 @@ class Recorder:
         self.next_t = 0.0
         self.subtask = -1
         self._rng = episode.rngs.sensor
-        self._sensor = sample_sensor_params(episode.dr.sensor, self._rng)
+        self._sensor = episode_sensor_params(episode)
         h, w = image_size
         self._cams = CameraRenderer(self.world, w, h, shadows=shadows)
         self._images: dict[str, list[np.ndarray]] = {c: [] for c in CAMERAS}

@@ -47,11 +47,11 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
                       goal_query=settings["goal_query"], phases=bool(settings["phases"]) and task in PHASED,
                       controller=controller, holdout_colors=tuple(h["colors"]), holdout_shapes=tuple(h["shapes"]),
                       holdout_split=split)
-    seen: dict = {}
+    seen: set[str] = set()
 
     def on_event(msg) -> None:
-        if msg.kind in _ENDING and msg.kind not in seen:
-            seen[msg.kind] = (time.monotonic(), msg.message)
+        if msg.kind in _ENDING:
+            seen.add(msg.kind)
 
     la = Launcher(specs, hub="tcp/127.0.0.1:0")
     with la:

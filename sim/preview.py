@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from sim.dr_config import DRConfig, load_dr
-from sim.randomize import corrupt_image, sample_sensor_params
+from sim.randomize import corrupt_image, episode_sensor_params
 from sim.render import CameraRenderer
 from sim.robot import WRIST_CAMERA
 from sim.scene import SCENE_CAMERA
@@ -33,7 +33,7 @@ def render_episode(task: str | None, cfg: DRConfig, seed: int, cameras, size,
     from sim.build import build_episode
 
     episode = build_episode(task, seed, cfg, fidelity=fidelity)
-    params = sample_sensor_params(cfg.sensor, episode.rngs.sensor)
+    params = episode_sensor_params(episode)
     frames = []
     with CameraRenderer(episode.world, *size) as renderer:
         for cam in cameras:

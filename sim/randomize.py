@@ -286,6 +286,12 @@ def sample_sensor_params(cfg: SensorDR, rng: np.random.Generator) -> SensorParam
     )
 
 
+def episode_sensor_params(episode) -> SensorParams:
+    """The episode's sensor parameters, drawn first from its sensor stream: the recorder, the preview and the live
+    sim cameras of one seed all get the same ones (and the stream then serves their per-frame noise)."""
+    return sample_sensor_params(episode.dr.sensor, episode.rngs.sensor)
+
+
 def corrupt_image(img: np.ndarray, params: SensorParams, rng: np.random.Generator) -> np.ndarray:
     """Per-channel gain, then additive gaussian noise, rounded and clipped back to uint8 (same shape)."""
     img = np.asarray(img)
@@ -304,4 +310,5 @@ def corrupt_image(img: np.ndarray, params: SensorParams, rng: np.random.Generato
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
-__all__ = ["randomize_spec", "SensorParams", "sample_sensor_params", "corrupt_image", "EpisodeRngs", "episode_rngs"]
+__all__ = ["randomize_spec", "SensorParams", "sample_sensor_params", "episode_sensor_params", "corrupt_image",
+           "EpisodeRngs", "episode_rngs"]

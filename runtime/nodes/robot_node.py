@@ -42,6 +42,7 @@ import numpy as np
 from runtime.controller.config import ControllerConfig
 from runtime.nodes.common import BusSettings, NodeContext, cli_main, percentiles
 from runtime.nodes.robot_guards import GuardedArm, GuardedFilter, Hold
+from runtime.nodes.sim_twin import frame_noises, note_sim_stop
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +99,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
 
     report: dict = {"mode": "hardware" if cfg.robot_ip else "sim", "chunks_received": 0, "chunks_accepted": 0,
                     "chunks_rejected": 0, "frames_published": {}, "events": {}, "task_success": False}
-    rig = episode = sensor = None
+    rig = episode = None
+    noises: dict = {}  # sim cameras in this process: their sensor DR
     cams: dict = {}
     render = None  # sim_render.SimRenderProcess (render_process)
     bus = None
@@ -137,10 +139,6 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                                           {name: SIM_CAMERAS[name] for name in cfg.cameras}, cfg.image_size,
                                           cfg.camera_fps, holdout=_holdout(cfg))
             episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast", holdout=_holdout(cfg))
-            if render is None:  # drawn first from the sensor stream, as datagen.recorder and sim_render do
-                from sim.randomize import sample_sensor_params
-
-                sensor = sample_sensor_params(episode.dr.sensor, episode.rngs.sensor)
             rig = SimRig(episode.world, "realtime")
             raw_arm, gripper = rig.arm, rig.gripper
             variant = episode.world.variant.name
@@ -149,6 +147,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 for name in cfg.cameras:
                     cams[name] = rig.camera(SIM_CAMERAS[name], W, H, cfg.camera_fps,
                                             CameraNoiseConfig(shadows=False))
+                noises = frame_noises(episode, cfg.seed, cfg.cameras)
             else:
                 render.wait_ready(episode.world.model)
             rig.start()
@@ -205,12 +204,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
         def camera_pub(name: str, cam) -> None:
             pub = bus.publisher(B.camera_color(name))
             report["frames_published"][name] = 0
-            noise = None
-            if sensor is not None:  # the episode's sensor DR, as sim_render and its recorded frames have it
-                from sim.randomize import corrupt_image
-
-                rng = np.random.default_rng([cfg.seed, 13, list(cfg.cameras).index(name)])  # one stream a camera
-                noise = lambda img: corrupt_image(img, sensor, rng)  # noqa: E731
+            noise = noises.get(name)
             while not quit_.is_set():
                 try:
                     f = cam.read(timeout_s=0.5)
@@ -277,7 +271,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
             pub_grip.publish(m.GripperStatus.from_gripper_state(gripper.state()))
             flush_events()
             if rig is not None:
-                stop_seen = _note_sim_stop(rig, stop_seen, now - t0, report, event)
+                stop_seen = note_sim_stop(rig, stop_seen, now - t0, report, event)
             if episode is not None and now >= next_check and not report["task_success"]:
                 next_check = now + cfg.success_check_s
                 with rig.lock:
@@ -368,7 +362,7 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
                 report["sim_render"] = {"error": repr(exc)}
         if rig is not None:
             if "protective_stops" in report:  # a stop in the controlled stop, after the main loop
-                _note_sim_stop(rig, stop_seen, time.monotonic() - t0, report, None)
+                note_sim_stop(rig, stop_seen, time.monotonic() - t0, report, None)
             report["protective_stopped"] = rig.protective_stopped
             # physics behind the wall clock: the arm lags its targets, unlike a real UR's 500 Hz controller
             report["sim_physics"] = {"rate_hz": round(rig.achieved_rate_hz(), 1), "overruns": rig.overruns}
@@ -385,21 +379,6 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
             report["latency_ms"] = {k: percentiles(v, 1e-6) for k, v in chunk_lat.items()}
             bus.close()
     return report
-
-
-def _note_sim_stop(rig, seen: str | None, after_s: float, report: dict, event) -> str | None:
-    """Record a new protective stop of the sim twin with its cause (which contact, how hard, how fast: what
-    an operator needs, and what a real UR tells only on its pendant) once; returns the stop now seen."""
-    if not rig.protective_stopped:
-        return None
-    reason = rig.stop_reason
-    if not reason or reason == seen:
-        return seen
-    report["protective_stops"].append({"after_s": round(after_s, 3), "reason": reason,
-                                       "tcp_speed_m_s": rig.stop_tcp_speed})
-    if event is not None:
-        event("sim_protective_stop", "error", f"the sim's safety system stopped the arm: {reason}", after_s=after_s)
-    return reason
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -87,7 +87,7 @@ def serve(cfg: dict, conn) -> None:
         from runtime import bus as B
         from runtime import messages as m
         from runtime.nodes.common import BusSettings, config_from_dict, percentiles
-        from sim.randomize import corrupt_image, sample_sensor_params
+        from sim.randomize import corrupt_image, episode_sensor_params
         from sim.render import CameraRenderer
 
         episode = _build(cfg["task"], int(cfg["seed"]), cfg["dr"], cfg.get("holdout", {}))
@@ -98,9 +98,7 @@ def serve(cfg: dict, conn) -> None:
         H, W = (int(v) for v in cfg["image_size"])
         cams: dict[str, str] = dict(cfg["cameras"])
         renderer = CameraRenderer(types.SimpleNamespace(model=model, data=data), W, H, shadows=False)
-        # the episode's sensor DR (gain, pixel noise), as its recorded and lockstep frames have it: the same
-        # parameters for a seed, drawn first from its sensor stream as datagen.recorder does
-        sensor = sample_sensor_params(episode.dr.sensor, episode.rngs.sensor)
+        sensor = episode_sensor_params(episode)  # gain, pixel noise: as the seed's recorded and lockstep frames
         intr = {name: renderer.intrinsics(mj) for name, mj in cams.items()}
         bus = config_from_dict(BusSettings, cfg["bus"]).open()
         pubs = {name: bus.publisher(B.camera_color(name)) for name in cams}
