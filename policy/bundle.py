@@ -308,8 +308,19 @@ class Bundle:
         points = self._encode(images, proprio, text_embedding, stage, None)[1][0]
         return points_from_tcp(points[None, :3] * AUX_TCP_SCALE, np.asarray(proprio)[-1, :9])[0].astype(np.float32)
 
-    def _encode(self, images, proprio, text_embedding, stage: int, release) -> list[np.ndarray]:
-        """The obs encoder's outputs (cond, and with release_input the head's aux_points) for checked inputs."""
+    def goal_point(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
+                   stage: int = 0) -> np.ndarray:
+        """(3,) where the goal query finds its object, in the base frame [m]: the goal locator's grasp point
+        (policy/goal_locator.py) where the bundle has one, else the aux head's (`grasp_point`)."""
+        if not (self.goal_query is not None and self.goal_query.locator):
+            return self.grasp_point(images, proprio, text_embedding, stage)
+        feeds, p = self._checked_feeds(images, proprio, text_embedding)
+        feeds.pop("proprio")
+        points = self.sessions["goal_locator"].run(None, feeds)[0][0]
+        return points_from_tcp(points[None, :3] * AUX_TCP_SCALE, p[-1, :9])[0].astype(np.float32)
+
+    def _checked_feeds(self, images, proprio, text_embedding) -> tuple[dict, np.ndarray]:
+        """The graphs' image, raw proprio and text feeds after checking them, and the proprio as float32."""
         To, (H, W) = self.obs_horizon, self.image_size
         feeds = {}
         for c in self.cameras:
@@ -324,9 +335,14 @@ class Bundle:
         e = np.asarray(text_embedding, np.float32).reshape(-1)
         if e.shape != (self.instruction_dim,) or not np.all(np.isfinite(e)):
             raise ValueError(f"text_embedding: expected finite ({self.instruction_dim},) (Bundle.embed), got {e.shape}")
+        feeds["proprio"], feeds["text_embedding"] = p, e[None]
+        return feeds, p
+
+    def _encode(self, images, proprio, text_embedding, stage: int, release) -> list[np.ndarray]:
+        """The obs encoder's outputs (cond, and with release_input the head's aux_points) for checked inputs."""
+        feeds, p = self._checked_feeds(images, proprio, text_embedding)
         normalized = p * self.stats["proprio_scale"] + self.stats["proprio_offset"]
         feeds["proprio"] = with_stage(normalized, stage, self.stage_bins)[None].astype(np.float32)
-        feeds["text_embedding"] = e[None]
         if self.release_input:
             r = np.zeros(4, np.float32) if release is None else np.asarray(release, np.float32).reshape(-1)
             if r.shape != (4,) or not np.all(np.isfinite(r)):

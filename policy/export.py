@@ -14,6 +14,7 @@ Bundle layout (format "sudd-policy-bundle", version 1):
                          I = 384, or 768 with "instruction": {"goal_clause": true} (policy.instruction);
                          with "release_input": true also release_point (B,4) in and aux_points (B,dims.aux) out
                          (the goal query, policy/goal_query.py; its table is the manifest's "goal_query")
+    goal_locator.onnx    with a goal locator (policy/goal_locator.py): image_<camera>, text_embedding -> aux_points
     denoiser.onnx        noisy_actions (B,Tp,Da), timestep (B,) int64, cond (B,G) -> noise_pred (B,Tp,Da)
     text_encoder.onnx    input_ids, attention_mask (B,L) int64 -> embedding (B,384), weight-only int8 MiniLM
     tokenizer/           tokenizer.json (+ vocab and configs) for `tokenizers`
@@ -48,6 +49,9 @@ import torch
 
 from policy.bundle import sha256_file
 from policy.config import TEXT_DIM, PolicyConfig
+from policy.goal_locator import GRAPH as LOCATOR_GRAPH
+from policy.goal_locator import LocatorGraph
+from policy.goal_locator import graph_spec as locator_spec
 from policy.graph_frames import with_release
 from policy.model import DiffusionPolicy, count_params, film_dim, prepare_images
 from policy.normalize import STAT_KEYS, Normalizer
@@ -183,6 +187,16 @@ def write_policy_graphs(model: DiffusionPolicy, out_dir: Path, opset: int = OPSE
     return info
 
 
+def _write_locator(locator: DiffusionPolicy, out_dir: Path, spec: dict, opset: int, fp16: bool) -> dict:
+    """Trace goal_locator.onnx (policy/goal_locator.py); its weight-storage figures."""
+    cfg = locator.cfg
+    g = torch.Generator().manual_seed(1)
+    H, W = cfg.image_size
+    ex = tuple(torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
+               for _ in cfg.cameras) + (torch.randn(1, cfg.text_input_dim),)
+    return _write_graph(LocatorGraph(locator), ex, out_dir / spec["file"], spec, opset, fp16)
+
+
 # The manifest key holding the sampler's schedule, and what the denoiser graph predicts, per objective.
 SAMPLER_KEY = {"ddpm": "ddim", "flow": "euler"}
 PREDICTS = {"ddpm": "epsilon", "flow": "velocity"}
@@ -192,7 +206,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
            inference_steps: int | None = None, noise_scale: float | None = None,
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
-           goal_query: dict | None = None) -> dict:
+           goal_query: dict | None = None, goal_locator: str | Path | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -204,7 +218,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     pace: {task family or "*": speed} the runtime plays the chunks at (policy.pace; default every family at 1,
     or a bundle's own table).
     goal_query: {"families": [...], "data": DIR, "ticks": n}: measure the goal query on DIR's episodes
-    (policy.goal_query_measure) and export the obs encoder with the release point input (config release_input)."""
+    (policy.goal_query_measure) and export the obs encoder with the release point input (config release_input).
+    goal_locator: with goal_query, a `sudd pretrain --goal-locator` run (policy/goal_locator.py) the query asks
+    instead of the policy's head, exported as goal_locator.onnx and measured so."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -228,18 +244,47 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
             data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
     overrides = {k: v for k, v in (("inference_steps", inference_steps), ("noise_scale", noise_scale))
                  if v is not None}
-    table = None
+    table, locator = None, None
+    if goal_locator is not None and goal_query is None:
+        raise ValueError("--goal-locator is what the goal query asks: give --goal-query FAMILY and --goal-query-data too")
     if goal_query is not None:
         from policy.goal_query_measure import measure
 
         check_pace_table({f: 1.0 for f in goal_query["families"]}, data_info.get("tasks", []), "--goal-query")
+        if goal_locator is not None:
+            locator = _load_locator(goal_locator, model.cfg)
         table = measure(model, normalizer, goal_query["data"], list(goal_query["families"]),
-                        goal_query.get("ticks", 3))
+                        goal_query.get("ticks", 3), locator=locator)
+        if locator is not None:
+            table["locator_from"] = {"run": str(goal_locator), **_locator_record(goal_locator)}
         overrides["release_input"] = True
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
-                        text_encoder_from, pace, table)
+                        text_encoder_from, pace, table, locator)
+
+
+def _load_locator(run_dir: str | Path, policy_cfg: PolicyConfig):
+    """A `sudd pretrain --goal-locator` run's model (EMA weights), checked to read the policy's inputs."""
+    from policy.goal_locator import check_compatible
+    from policy.train import load_run_model
+
+    record = _locator_record(run_dir)
+    if not record.get("goal_locator"):
+        raise ValueError(f"--goal-locator {run_dir}: not a goal locator run (its dataset.json's pretrain has no "
+                         "goal_locator: true); train one with `sudd pretrain --goal-locator --init-from BUNDLE`")
+    locator, cfg, _ = load_run_model(run_dir)
+    check_compatible(policy_cfg, cfg)
+    return locator
+
+
+def _locator_record(run_dir: str | Path) -> dict:
+    path = Path(run_dir) / "dataset.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"--goal-locator {run_dir}: no dataset.json there; give a `sudd pretrain "
+                                "--goal-locator` run directory")
+    pre = json.loads(path.read_text()).get("pretrain") or {}
+    return {k: pre[k] for k in ("goal_locator", "views", "view_count", "scenes") if k in pre}
 
 
 def _bundle_source(bundle_dir: Path):
@@ -272,9 +317,10 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                  data_info: dict | None = None, training: dict | None = None, opset: int = OPSET,
                  cache_dir: str | Path | None = None, fp16_weights: bool = True,
                  text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
-                 goal_query: dict | None = None) -> dict:
+                 goal_query: dict | None = None, locator: DiffusionPolicy | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
-    goal_query: the manifest's table (policy.goal_query_measure), for a model with release_input.
+    goal_query: the manifest's table (policy.goal_query_measure), for a model with release_input; locator: the
+    goal locator it was measured with (policy/goal_locator.py), written as goal_locator.onnx.
 
     fp16_weights: store the policy graphs' weights as float16; `model` itself is left unrounded."""
     import tokenizers
@@ -291,6 +337,9 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
         round_weights_(rounded)
         weights = {"dtype": "float16", "rounding": rounding_cost(model, rounded, normalizer)}
         model = rounded
+        if locator is not None:
+            locator = copy.deepcopy(locator).eval().cpu()
+            round_weights_(locator)
     cfg = model.cfg
     out = Path(out_bundle_dir)
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
@@ -300,6 +349,9 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     try:
         specs = graph_specs(cfg)
         weights.update(write_policy_graphs(model, tmp, opset, fp16_weights))
+        if locator is not None:
+            specs[LOCATOR_GRAPH] = locator_spec(cfg)
+            weights[LOCATOR_GRAPH] = _write_locator(locator, tmp, specs[LOCATOR_GRAPH], opset, fp16_weights)
         text_info = add_text_encoder(tmp, cache_dir, opset, text_encoder_from)
         normalizer.save(tmp / "stats.npz")
         files = [p for p in sorted(tmp.rglob("*")) if p.is_file()]
@@ -337,7 +389,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "files": {str(p.relative_to(tmp)): {"bytes": p.stat().st_size, "sha256": sha256_file(p)} for p in files},
         }
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
-        manifest["parity"] = check_parity(model, normalizer, tmp)
+        manifest["parity"] = check_parity(model, normalizer, tmp, locator=locator)
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         if out.exists():
             shutil.rmtree(out)

@@ -12,7 +12,7 @@ sim's true point gave an earlier run 10/20; policy/EXPERIMENTS.md, "The goal que
 
 How: per command of a family the bundle's manifest lists (`goal_query`), `role_swap` exchanges the object phrase
 before the goal clause with the one in it; for the first `ticks` inferences the head reads the swapped sentence
-(obs_encoder.onnx with its release flag off), and the median of its grasp points, in the base frame, plus
+(obs_encoder.onnx with its release flag off, or the bundle's goal locator, policy/goal_locator.py, where it has one), and the median of its grasp points, in the base frame, plus
 `offset_m` is held for the rest of the command and given to every inference as the release point
 (`Bundle.act(release=...)`): the object is on the table at rest at the start, and later frames (the arm over it,
 an object in the fingers) are not scenes the swapped sentence was trained on (measured: 13 cm off while carrying).
@@ -76,6 +76,7 @@ class GoalQuerySpec:
     families: tuple[str, ...]
     offset_m: tuple[float, float, float]
     ticks: int
+    locator: bool = False  # asked of goal_locator.onnx (policy/goal_locator.py) instead of the obs encoder's head
 
 
 def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
@@ -100,7 +101,10 @@ def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
     ticks = q.get("ticks")
     if not (isinstance(ticks, int) and 1 <= ticks <= MAX_TICKS):
         raise ValueError(f"manifest goal_query.ticks {ticks!r}: expected an integer in [1, {MAX_TICKS}]")
-    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks)
+    locator = q.get("locator", False)
+    if not isinstance(locator, bool):
+        raise ValueError(f"manifest goal_query.locator {locator!r}: expected true (asked of goal_locator.onnx) or false")
+    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks, locator)
 
 
 class GoalQuery:
@@ -129,7 +133,7 @@ class GoalQuery:
         if self._query is None:
             return None
         if len(self._points) < self.spec.ticks:
-            grasp = self.bundle.grasp_point(images, proprio, self._query, stage)
+            grasp = self.bundle.goal_point(images, proprio, self._query, stage)
             self._points.append(grasp + np.asarray(self.spec.offset_m))
             self.point = np.median(np.stack(self._points), axis=0)
         return np.append(self.point, 1.0).astype(np.float32)

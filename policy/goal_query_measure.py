@@ -23,9 +23,10 @@ from policy.instruction import embed_instructions
 
 
 @torch.no_grad()
-def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedder=None) -> dict:
+def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedder=None, locator=None) -> dict:
     """The manifest's goal_query table for `model` on `data` (module doc); a ValueError when no episode of
-    `families` has a command with two objects."""
+    `families` has a command with two objects. locator: a goal locator (policy/goal_locator.py) asked the swapped
+    command in place of `model`'s head; the head's own release point is still `model`'s."""
     from policy.data import PolicyDataset, finish_images
 
     if not 1 <= int(ticks) <= MAX_TICKS:
@@ -49,11 +50,12 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
         raise ValueError(f"{data}: no verified episode of {', '.join(families)} whose command names two objects "
                          "(policy.goal_query.role_swap); measure on data of those families")
     model.eval()
+    asked = model if locator is None else locator.eval()
     queried, head_release, truth = [], [], []
     for k, rows in sorted(first.items()):
         batch = finish_images(default_collate([ds[i] for i in rows]))
         swapped = torch.from_numpy(embed_instructions(embedder, [role_swap(ds.instructions[k])], cfg.text_goal))
-        grasp = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"],
+        grasp = asked.aux_points(asked.obs_encoder(batch["images"], batch["proprio"],
                                                    swapped.expand(len(rows), -1)))[:, :3].numpy()
         own = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"], batch["text"]))[:, 3:6].numpy()
         steps = [ds._newest_step(i)[1] for i in rows]
@@ -74,6 +76,7 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
     from datagen.store import Dataset
 
     return {"families": list(families), "offset_m": [round(float(v), 4) for v in offset], "ticks": int(ticks),
+            **({"locator": True} if locator is not None else {}),
             "measured": {"data": str(data), "content_hash": Dataset(data).content_hash(), "episodes": len(truth),
                          "release_cm_median": round(float(np.median(errors)) * 100, 2),
                          "release_cm_p75": round(float(np.percentile(errors, 75)) * 100, 2),

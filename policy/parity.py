@@ -74,8 +74,9 @@ def rounding_cost(fp32: DiffusionPolicy, rounded: DiffusionPolicy, normalizer: N
 
 @torch.no_grad()
 def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str | Path, trials: int = 3,
-                 seed: int = 0) -> dict:
-    """torch vs the bundle (see the module docstring). Raises ExportError over tolerance."""
+                 seed: int = 0, locator: DiffusionPolicy | None = None) -> dict:
+    """torch vs the bundle (see the module docstring), and a goal locator's graph vs `locator` where given.
+    Raises ExportError over tolerance."""
     from policy.bundle import Bundle
 
     b = Bundle.load(bundle_dir, warmup=False)
@@ -92,8 +93,11 @@ def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str
         worst["chunk_max_abs_err"] = max(worst["chunk_max_abs_err"], float(np.abs(ref_chunk - chunk).max()))
     if model.cfg.release_input:
         worst.update(_release_parity(model, normalizer, b, trials, seed))
+    if locator is not None:
+        worst["goal_locator_max_abs_err"] = _locator_parity(locator, normalizer, b, trials, seed)
     worst.update(trials=trials, step_tol=STEP_TOL, chunk_tol=CHUNK_TOL)
-    over = [k for k in ("cond_max_abs_err", "step_max_abs_err", "release_cond_max_abs_err", "aux_points_max_abs_err")
+    over = [k for k in ("cond_max_abs_err", "step_max_abs_err", "release_cond_max_abs_err", "aux_points_max_abs_err",
+                        "goal_locator_max_abs_err")
             if worst.get(k, 0.0) > STEP_TOL]
     if over or worst["chunk_max_abs_err"] > CHUNK_TOL:
         raise ExportError(f"exported graphs disagree with torch: {worst}")
@@ -115,4 +119,16 @@ def _release_parity(model: DiffusionPolicy, normalizer: Normalizer, b, trials: i
         ref = model.unet.condition(model.cond_from(features, p, with_release(head, torch.from_numpy(release)[None])))
         worst["release_cond_max_abs_err"] = max(worst["release_cond_max_abs_err"], float(np.abs(ref.numpy() - cond).max()))
         worst["aux_points_max_abs_err"] = max(worst["aux_points_max_abs_err"], float(np.abs(head.numpy() - points).max()))
+    return worst
+
+
+def _locator_parity(locator: DiffusionPolicy, normalizer: Normalizer, b, trials: int, seed: int) -> float:
+    """The largest |goal_locator.onnx's points - the torch locator's| over random observations."""
+    worst = 0.0
+    for images, proprio, text, _, stage in _random_observations(locator.cfg, normalizer, trials, seed + 2):
+        feeds = {f"image_{c}": images[c][None] for c in locator.cfg.cameras}
+        got = b.sessions["goal_locator"].run(None, {**feeds, "text_embedding": text[None]})[0]
+        imgs, p, t = _inputs(locator, normalizer, images, proprio, text, stage)
+        ref = locator.aux_points(locator.obs_encoder(imgs, p, t)).numpy()
+        worst = max(worst, float(np.abs(ref - got).max()))
     return worst

@@ -53,6 +53,10 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
         if guessed:
             lines.append(line("constant guess", guessed, "guess_grasp_cm"))
         panels.append(("aux head: grasp (and release) point error [cm]", lines, False))
+    goal = [r for r in rows if "goal_cm_median" in r]  # a goal locator's run (policy/goal_locator.py)
+    if goal:
+        panels.append(("goal query: release point error on unseen episodes [cm]",
+                       [line("median", goal, "goal_cm_median"), line("p75", goal, "goal_cm_p75")], False))
     _draw(panels, out_png)
     return Path(out_png)
 

@@ -48,6 +48,7 @@ from datagen.views import measure_offsets
 from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, finish_images, jitter_factors
+from policy.goal_locator import GOAL_COLUMNS, locator_rows
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
 from policy.instruction import embed_instructions
 from policy.model import DiffusionPolicy, count_params
@@ -63,8 +64,11 @@ class Views:
     """Rendered views as training batches (everything in memory, uint8 images)."""
 
     def __init__(self, views_dir: str | Path | list, cfg: PolicyConfig, normalizer, embedder,
-                 offsets: dict | None = None):
+                 offsets: dict | None = None, goal_locator: bool = False):
         v = load_views(views_dir, offsets)
+        if goal_locator:  # the home views, asked the swapped command (policy/goal_locator.py)
+            v = locator_rows(v)
+        self.families = sorted(set(v["task"].tolist()))
         if v["scene"].shape[1:3] != tuple(cfg.image_size):
             raise ValueError(f"{views_dir}: views are {v['scene'].shape[1:3]} pixels, the config expects "
                              f"{tuple(cfg.image_size)}; render them at the policy's image_size")
@@ -143,7 +147,8 @@ def _names(views_dir) -> str | list[str]:
 def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | Path | PolicyConfig | dict,
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
              progress: bool = True, embedder=None, init_from: str | Path | None = None,
-             head_only: bool = False, episode_share: float = 0.0, episode_tasks: tuple[str, ...] = ()) -> dict:
+             head_only: bool = False, episode_share: float = 0.0, episode_tasks: tuple[str, ...] = (),
+             goal_locator: bool = False) -> dict:
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
@@ -154,6 +159,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     head_only: train the aux head alone, the encoders as init_from left them (module doc).
     episode_share: the share of each batch taken from the data's training episodes (module doc), in [0, 1);
     episode_tasks: of these families only (default all).
+    goal_locator: train a goal locator (policy/goal_locator.py) instead: the views at home, the swapped command, the
+    release point as the grasp label and the loss on that point alone; validated by the goal query's error on
+    --data's episodes (which the views never showed), before and during training, in place of the head's.
     """
     from tqdm import tqdm
 
@@ -173,6 +181,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     if episode_tasks and not episode_share:
         raise ValueError(f"episode_tasks {list(episode_tasks)} chooses the recorded frames of episode_share, which is 0: "
                          "give a share too (sudd pretrain --episode-share 0.25 --episode-task ...)")
+    if goal_locator and (init_from is None or episode_share):
+        raise ValueError("a goal locator is a copy of a policy's encoders and head taught the goal query on home views: "
+                         "give --init-from the bundle it goes with, and no --episode-share (recorded frames carry "
+                         "the policy's labels, not the query's)")
     if head_only and init_from is None:
         raise ValueError("head_only trains the aux head on the encoders of an earlier pretrain run: give init_from "
                          "(sudd pretrain --head-only --init-from PRETRAIN_RUN)")
@@ -191,12 +203,12 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                         max_cache_bytes=0,
                         normalizer=None if init_from is None else warm_start.source_normalizer(init_from))
     validator = None
-    if split:
+    if split and not goal_locator:
         val = PolicyDataset(data_dir, cfg, train=False, normalizer=fit.normalizer, embedder=embedder,
                             uint8_images=True, split="val", max_cache_bytes=0)
         validator = Validator(val, fit, seed=cfg.seed, chunks=False)
     offsets = {task: measure_offsets(data_dir, task) for task in view_tasks(views_dir)}
-    views = Views(views_dir, cfg, fit.normalizer, embedder, offsets)
+    views = Views(views_dir, cfg, fit.normalizer, embedder, offsets, goal_locator)
     episodes = None
     if episode_share > 0:
         episodes = EpisodeFrames(PolicyDataset(data_dir, cfg, train=True, normalizer=fit.normalizer, embedder=embedder,
@@ -224,20 +236,31 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     offsets_m = {t: {k: np.round(o[k], 4).tolist() for k in ("grasp", "release")} for t, o in offsets.items()}
     info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
                                       "offsets_m": offsets_m, "head_only": head_only,
-                                      "episode_share": episode_share, "episode_tasks": list(episode_tasks)})
+                                      "episode_share": episode_share, "episode_tasks": list(episode_tasks),
+                                      "goal_locator": goal_locator})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
     metrics = run_dir / "metrics.jsonl"
     metrics.write_text("")
     rng = np.random.default_rng(cfg.seed)
+    goal = None
+    if goal_locator:
+        from policy.goal_query_measure import measure
+
+        goal = lambda m: measure(m.eval(), fit.normalizer, data_dir, views.families, embedder=embedder)["measured"]  # noqa: E731
+        before = goal(model)
+        with open(metrics, "a") as f:
+            f.write(json.dumps({"step": 0, "goal_cm_median": before["release_cm_median"],
+                                "goal_cm_p75": before["release_cm_p75"]}) + "\n")
+    cols = GOAL_COLUMNS if goal_locator else slice(None)
     model.train()
     acc, n_acc, t_log = 0.0, 0, time.perf_counter()
     for step in tqdm(range(1, steps + 1), desc="pretrain", unit="step", disable=not progress):
         b = mixed_batch(views, episodes, episode_share, rng, cfg.batch_size)
         with torch.set_grad_enabled(not head_only):  # frozen encoders: no backward through them
             features = model.obs_encoder(b["images"], b["proprio"], b["text"])
-        loss = F.mse_loss(model.aux_points(features), b["aux"])
+        loss = F.mse_loss(model.aux_points(features)[:, cols], b["aux"][:, cols])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip > 0:
@@ -254,14 +277,19 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                 acc, n_acc, t_log = 0.0, 0, now
             if validator is not None and (step % cfg.val_every == 0 or step == steps):
                 f.write(json.dumps({"step": step, **validator(ema.model, torch.device("cpu"))}) + "\n")
+            if goal is not None and (step % cfg.val_every == 0 or step == steps):
+                q = goal(ema.model)
+                f.write(json.dumps({"step": step, "goal_cm_median": q["release_cm_median"],
+                                    "goal_cm_p75": q["release_cm_p75"]}) + "\n")
     checkpoint = save_checkpoint(run_dir, steps, steps, model, ema, opt, sched, cfg)
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
-    checks = [r for r in rows if "val_loss" in r]
+    checks = [r for r in rows if "val_loss" in r or "goal_cm_median" in r]
     losses = [r["loss"] for r in rows if "loss" in r]
     summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"],
                "views": len(views), "scenes": views.scenes,
                "params": count_params(model), "checkpoint": str(checkpoint), "final_loss": losses[-1],
                "validation": checks[-1] if checks else None,
+               **({"goal_query_before": checks[0]} if goal_locator else {}),
                "plot": str(plot_metrics(metrics, run_dir / "metrics.png"))}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

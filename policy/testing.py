@@ -76,6 +76,34 @@ def tiny_run(root: str | Path) -> Path:
     return root / "run"
 
 
+STACK = "stack the red block on the blue block"
+# The shipped bundle's kind of policy (tcp frames, the head's points conditioning the denoiser, flow matching).
+SHIPPED_LIKE = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "aux_condition": True,
+                "aux_release_frame": "base", "objective": "flow", "obs_horizon": 1, "text_goal": True}
+
+
+def goal_query_run(root: str | Path) -> tuple[Path, Path]:
+    """(ROOT/data, ROOT/run): a TINY SHIPPED_LIKE run of 4 steps on pick_place and stack episodes whose stack
+    command (STACK) names two blocks, for the goal query and its locator."""
+    from policy.train import train
+
+    root = Path(root)
+    data = synthetic_dataset(root / "data", episodes=6, tasks=("pick_place", "stack"), smooth=True,
+                             instructions={"stack": STACK, "pick_place": "put the red cube in the blue bin"})
+    train(data, dict(TINY), root / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
+          overrides=SHIPPED_LIKE)
+    return data, root / "run"
+
+
+def random_observation(bundle, seed: int = 0) -> tuple[dict, np.ndarray]:
+    """Random uint8 frames per camera and a proprio inside the bundle's stats range, as Bundle.act takes them."""
+    rng = np.random.default_rng(seed)
+    images = {c: rng.integers(0, 256, (bundle.obs_horizon, *bundle.image_size, 3), dtype=np.uint8)
+              for c in bundle.cameras}
+    lo, hi = bundle.stats["proprio_min"], bundle.stats["proprio_max"]
+    return images, (lo + (hi - lo) * rng.random((bundle.obs_horizon, bundle.proprio_dim))).astype(np.float32)
+
+
 def linked_copy(bundle_dir: str | Path, dst: str | Path) -> Path:
     """A bundle's copy whose large files are symlinks (fast); manifest and stats are real files to edit."""
     dst = Path(dst)

@@ -17,14 +17,10 @@ from policy.graph_frames import with_release
 from policy.model import prepare_images
 from policy.parity import STEP_TOL
 from policy.stage import with_stage
-from policy.testing import TINY, hash_embedder, linked_copy, synthetic_dataset
-from policy.train import train
+from policy.testing import STACK, goal_query_run, linked_copy, random_observation, synthetic_dataset
 from runtime.bench_runtime import test_cache_dir as cache_dir
 
 CACHE = cache_dir()
-STACK = "stack the red block on the blue block"
-SHIPPED_LIKE = {"aux_target_weight": 1.0, "aux_target_frame": "tcp", "action_frame": "tcp", "aux_condition": True,
-                "aux_release_frame": "base", "objective": "flow", "obs_horizon": 1, "text_goal": True}
 
 
 @pytest.mark.parametrize("text, want", [
@@ -64,34 +60,13 @@ def test_a_bad_goal_query_table_is_refused_naming_its_field(change, field):
 
 
 @pytest.fixture(scope="module")
-def loose_offsets():
-    """An untrained tiny head's swapped grasp points lie ~0.4 m from the synthetic release points, past the
-    offset a trained one is allowed (refused, as test_the_measure_refuses_... checks): allow it here."""
-    with pytest.MonkeyPatch.context() as mp:
-        for module in ("policy.goal_query", "policy.goal_query_measure", "policy.bundle_manifest"):
-            mp.setattr(f"{module}.MAX_OFFSET_M", 2.0, raising=False)
-        yield
-
-
-@pytest.fixture(scope="module")
 def exported(tmp_path_factory, loose_offsets):
     root = tmp_path_factory.mktemp("goal_query")
-    data = synthetic_dataset(root / "data", episodes=6, tasks=("pick_place", "stack"), smooth=True,
-                             instructions={"stack": STACK, "pick_place": "put the red cube in the blue bin"})
-    train(data, dict(TINY), root / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
-          overrides=SHIPPED_LIKE)
+    data, _ = goal_query_run(root)
     export(root / "run", root / "plain", cache_dir=CACHE, pace={"stack": 0.5})
     export(root / "plain", root / "query", cache_dir=CACHE,
            goal_query={"families": ["stack"], "data": data, "ticks": 2})
     return root
-
-
-def _observation(b: Bundle, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    images = {c: rng.integers(0, 256, (b.obs_horizon, *b.image_size, 3), dtype=np.uint8) for c in b.cameras}
-    lo, hi = b.stats["proprio_min"], b.stats["proprio_max"]
-    proprio = (lo + (hi - lo) * rng.random((b.obs_horizon, b.proprio_dim))).astype(np.float32)
-    return images, proprio
 
 
 def test_the_export_records_the_query_and_its_graph_takes_a_release_point(exported):
@@ -111,7 +86,7 @@ def test_the_export_records_the_query_and_its_graph_takes_a_release_point(export
 
 def test_without_a_release_point_the_graph_acts_as_the_bundle_it_was_exported_from(exported):
     plain, query = Bundle.load(exported / "plain"), Bundle.load(exported / "query")
-    images, proprio = _observation(plain)
+    images, proprio = random_observation(plain)
     emb = plain.embed(STACK)
     noise = np.random.default_rng(3).normal(size=(plain.pred_horizon, plain.action_dim)).astype(np.float32)
     a = plain.act(images, proprio, emb, noise=noise)
@@ -128,7 +103,7 @@ def test_without_a_release_point_the_graph_acts_as_the_bundle_it_was_exported_fr
 def test_the_grasp_point_is_the_heads_in_the_base_frame(exported):
     b = Bundle.load(exported / "query")
     model, normalizer, _ = model_from_bundle(exported / "query")  # the probe traces the release input alike
-    images, proprio = _observation(b, 1)
+    images, proprio = random_observation(b, 1)
     emb = b.embed(STACK)
     cfg = model.cfg
     with torch.no_grad():
@@ -152,7 +127,7 @@ def test_with_release_replaces_only_the_flagged_release_point():
 
 
 class _Counting:
-    """A bundle that counts the head's questions."""
+    """A bundle that counts the goal query's questions."""
 
     def __init__(self, bundle):
         self.b, self.asked = bundle, []
@@ -161,14 +136,14 @@ class _Counting:
     def embed(self, text):
         return self.b.embed(text)
 
-    def grasp_point(self, images, proprio, emb, stage=0):
+    def goal_point(self, images, proprio, emb, stage=0):
         self.asked.append(emb)
         return np.array([0.1 * len(self.asked), 0.5, 0.0], np.float32)
 
 
 def test_the_query_asks_the_first_ticks_then_holds_their_median(exported):
     b = _Counting(Bundle.load(exported / "query"))
-    images, proprio = _observation(b.b)
+    images, proprio = random_observation(b.b)
     q = GoalQuery(b, STACK, "stack")
     assert q.active and q.swapped == "stack the blue block on the red block"
     got = [q.release(images, proprio)]
@@ -232,7 +207,7 @@ class _Still:
     def embed(self, text):
         return np.frombuffer(text.encode().ljust(384)[:384], np.uint8).astype(np.float32)
 
-    def grasp_point(self, images, proprio, emb, stage=0):
+    def goal_point(self, images, proprio, emb, stage=0):
         self.asked.append(emb)
         return np.array([0.1, 0.4 + 0.01 * len(self.asked), 0.02], np.float32)
 

@@ -1,0 +1,130 @@
+"""The goal locator (policy/goal_locator.py): its views, its pretraining (the swapped command, the release point as
+the grasp label, the loss on that point alone), its export as goal_locator.onnx, parity and the bundle's
+goal_point, and the refusals."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from policy.action_frame import points_from_tcp
+from policy.bundle import Bundle, BundleError
+from policy.config import AUX_TCP_SCALE
+from policy.export import export
+from policy.goal_locator import locator_rows
+from policy.goal_query import GoalQuery
+from policy.model import prepare_images
+from policy.parity import STEP_TOL
+from policy.testing import STACK, TINY, goal_query_run, hash_embedder, random_observation
+from policy.train import load_run_model
+from runtime.bench_runtime import test_cache_dir as cache_dir
+
+CACHE = cache_dir()
+
+
+def test_locator_rows_keep_each_scenes_home_view_with_the_swapped_command_and_the_release_as_grasp():
+    n = 7
+    v = {"seed": np.array([1, 1, 1, 2, 2, 3, 3]), "task": np.array(["stack"] * 5 + ["pick_place"] * 2),
+         "stage": np.array([""] * n),
+         "instruction": np.array([STACK] * 3 + ["place the green block onto the white block"] * 2
+                                 + ["put the red cube in the blue bin"] * 2),
+         "points": np.arange(n * 6, dtype=np.float32).reshape(n, 2, 3), "scene": np.zeros((n, 4, 4, 3), np.uint8)}
+    out = locator_rows(v)
+    assert out["seed"].tolist() == [1, 2]  # first views only; pick_place's command names no second object
+    assert out["instruction"].tolist() == ["stack the blue block on the red block",
+                                           "place the white block onto the green block"]
+    np.testing.assert_array_equal(out["points"][:, 0], v["points"][[0, 3], 1])
+    np.testing.assert_array_equal(out["points"][:, 1], v["points"][[0, 3], 1])
+    assert out["scene"].shape == (2, 4, 4, 3)
+    with pytest.raises(ValueError, match="two objects"):
+        locator_rows({**v, "instruction": np.array(["open the drawer"] * n)})
+
+
+@pytest.fixture(scope="module")
+def located(tmp_path_factory, loose_offsets):
+    from datagen.views import generate
+    from policy.pretrain import pretrain
+
+    root = tmp_path_factory.mktemp("goal_locator")
+    data, _ = goal_query_run(root)
+    export(root / "run", root / "plain", cache_dir=CACHE)
+    offsets = {"grasp": np.zeros(3), "release": np.array([0.0, 0.0, 0.06])}
+    generate(root / "views", range(500, 503), 2, offsets, progress=False, image_size=tuple(TINY["image_size"]),
+             task="stack")
+    summary = pretrain(root / "views", data, root / "plain", root / "locator", 6,
+                       {"lr": 3e-3, "warmup_steps": 1, "val_every": 3, "log_every": 3}, threads=1, progress=False,
+                       embedder=hash_embedder, init_from=root / "plain", goal_locator=True)
+    export(root / "plain", root / "bundle", cache_dir=CACHE, goal_locator=root / "locator",
+           goal_query={"families": ["stack"], "data": data, "ticks": 2})
+    return root, summary
+
+
+def test_pretraining_a_locator_trains_only_its_goal_point_on_home_views(located):
+    root, s = located
+    assert s["views"] == 3 and s["scenes"] == 3  # one home view of each stack scene
+    rows = [json.loads(x) for x in (root / "locator" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows if "goal_cm_median" in r] == [0, 3, 6]
+    assert s["goal_query_before"]["step"] == 0 and s["validation"]["step"] == 6
+    assert json.loads((root / "locator" / "dataset.json").read_text())["pretrain"]["goal_locator"] is True
+    from policy.bundle_import import model_from_bundle
+
+    src, _, _ = model_from_bundle(root / "plain")
+    loc, _, _ = load_run_model(root / "locator", ema=False)
+    w0, w1 = src.aux_head[-1].weight, loc.aux_head[-1].weight
+    assert (w1[:3] - w0[:3]).abs().max() > 1e-4  # the goal point's outputs learnt
+    torch.testing.assert_close(w1[3:], w0[3:], rtol=1e-5, atol=1e-7)  # the rest had no loss (weight decay only)
+    moved = lambda part: max(float((a - b).detach().abs().max()) for a, b in zip(  # noqa: E731
+        loc.get_submodule(part).parameters(), src.get_submodule(part).parameters()))
+    assert moved("obs_encoder.images") > 1e-5  # the encoders learnt the question too
+    assert moved("unet") == 0.0 and moved("obs_encoder.proprio") == 0.0  # what the query does not read: untouched
+
+
+def test_the_exported_locator_answers_the_goal_query_in_place_of_the_head(located):
+    root, _ = located
+    m = json.loads((root / "bundle" / "manifest.json").read_text())
+    q = m["goal_query"]
+    assert q["locator"] is True and q["locator_from"]["goal_locator"] is True and q["locator_from"]["scenes"] == 3
+    assert m["graphs"]["goal_locator"]["file"] == "goal_locator.onnx" and "goal_locator.onnx" in m["files"]
+    assert m["parity"]["goal_locator_max_abs_err"] <= STEP_TOL
+    b = Bundle.load(root / "bundle")
+    images, proprio = random_observation(b, 1)
+    emb = b.embed("stack the blue block on the red block")
+    loc, _, _ = load_run_model(root / "locator")
+    cfg = loc.cfg
+    with torch.no_grad():
+        imgs = {c: prepare_images(torch.from_numpy(images[c])[None], cfg.crop_size) for c in cfg.cameras}
+        feats = loc.obs_encoder.camera_features(imgs, torch.from_numpy(emb)[None])[:, -1]
+        rel = loc.aux_head(feats)[0, :3].numpy()
+    want = points_from_tcp(rel[None] * AUX_TCP_SCALE, proprio[-1, :9].astype(np.float64))[0]
+    np.testing.assert_allclose(b.goal_point(images, proprio, emb), want, atol=2e-4)
+    assert np.abs(b.goal_point(images, proprio, emb) - b.grasp_point(images, proprio, emb)).max() > 1e-4
+    query = GoalQuery(b, STACK, "stack")  # the runtime's query reads the locator
+    release = query.release(images, proprio)
+    np.testing.assert_allclose(release[:3], b.goal_point(images, proprio, emb) + np.asarray(q["offset_m"]), atol=1e-5)
+
+
+def test_a_bundle_whose_manifest_asks_a_locator_it_lacks_is_refused(located, tmp_path):
+    root, _ = located
+    broken = tmp_path / "broken"
+    shutil.copytree(root / "bundle", broken)
+    m = json.loads((broken / "manifest.json").read_text())
+    del m["graphs"]["goal_locator"]
+    (broken / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(BundleError, match="goal_locator"):
+        Bundle.load(broken)
+    m["goal_query"]["locator"] = "yes"
+    (broken / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(BundleError, match="goal_query.locator"):
+        Bundle.load(broken)
+
+
+def test_export_refuses_a_locator_without_the_query_or_a_run_that_is_no_locator(located, tmp_path):
+    root, _ = located
+    with pytest.raises(ValueError, match="--goal-query"):
+        export(root / "plain", tmp_path / "x", cache_dir=CACHE, goal_locator=root / "locator")
+    with pytest.raises(ValueError, match="not a goal locator"):
+        export(root / "plain", tmp_path / "y", cache_dir=CACHE, goal_locator=root / "run",
+               goal_query={"families": ["stack"], "data": root / "data", "ticks": 2})
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
