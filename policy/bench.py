@@ -73,11 +73,15 @@ def run_policy_bench(quick: bool = False, bundle: str | Path | None = None, thre
             out["chunk"][f"threads_{k}"] = _pct(_times(lambda: bk.act(imgs, proprio, emb, rng=rng), n))
         feeds = {f"image_{c}": imgs[c][None] for c in b.cameras}
         feeds.update(proprio=proprio[None], text_embedding=emb[None])
+        if b.release_input:  # the goal query's input (policy/goal_query.py); flag 0: the head's own point
+            feeds["release_point"] = np.zeros((1, 4), np.float32)
         cond = b.sessions["obs_encoder"].run(None, feeds)[0]
         x = rng.normal(size=(1, b.pred_horizon, b.action_dim)).astype(np.float32)
         step = {"noisy_actions": x, "timestep": np.array([50], np.int64), "cond": cond}
         out["obs_encoder"] = _pct(_times(lambda: b.sessions["obs_encoder"].run(None, feeds), n))
         out["denoise_step"] = _pct(_times(lambda: b.sessions["denoiser"].run(None, step), n))
+        if b.goal_query is not None:  # the first inferences of a command it lists also ask this (goal locator or head)
+            out["goal_point"] = _pct(_times(lambda: b.goal_point(imgs, proprio, emb), n))
         sentences = ["pick up the red block and put it in the bowl", "open the top drawer, put the mug inside and close it"]
         k = iter(range(10**9))
         out["text_embed"] = _pct(_times(lambda: (b._cache.clear(), b.embed(sentences[next(k) % 2])), max(10, n // 4)))
@@ -94,7 +98,9 @@ def format_table(figures: dict) -> str:
              f"load {figures['load_ms']:.0f} ms"]
     for name, f in figures["chunk"].items():
         lines.append(f"  chunk  {name:10s} p50 {f['p50_ms']:7.2f} ms   p99 {f['p99_ms']:7.2f} ms")
-    for key in ("obs_encoder", "denoise_step", "text_embed"):
+    for key in ("obs_encoder", "denoise_step", "goal_point", "text_embed"):
+        if key not in figures:
+            continue
         f = figures[key]
         lines.append(f"  {key:17s} p50 {f['p50_ms']:7.2f} ms   p99 {f['p99_ms']:7.2f} ms")
     lines.append("  params  " + ", ".join(f"{k} {v / 1e6:.2f} M" for k, v in figures["params"].items()))

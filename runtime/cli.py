@@ -41,10 +41,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
                            description="Run a benchmark area and print its figures; --json prints one JSON object.",
-                           epilog="example:\n  sudd bench sim --json", formatter_class=argparse.RawDescriptionHelpFormatter)
+                           epilog="examples:\n  sudd bench sim --json\n"
+                                  "  sudd bench policy --policy policy/bundles/multitask   # the shipped bundle",
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     bench.add_argument("area", choices=sorted(BENCH_AREAS), help="what to measure")
     bench.add_argument("--json", action="store_true", help="print one JSON object (for scripts and CI)")
     bench.add_argument("--quick", action="store_true", help="fewer repetitions: a smoke run, not for figures")
+    bench.add_argument("--policy", metavar="BUNDLE", default=None,
+                       help="policy area: time this bundle (e.g. its goal query's goal_point) instead of a freshly "
+                            "initialized small one")
     bench.set_defaults(func=_bench)
     return parser
 
@@ -54,7 +59,10 @@ def _bench(args) -> int:
 
     module_name, func = BENCH_AREAS[args.area].split(":")
     module = importlib.import_module(module_name)
-    figures = getattr(module, func)(quick=args.quick)
+    if args.policy and args.area != "policy":
+        raise ValueError(f"--policy BUNDLE is for `sudd bench policy`, not {args.area}")
+    kwargs = {"bundle": args.policy} if args.policy else {}
+    figures = getattr(module, func)(quick=args.quick, **kwargs)
     if args.json:
         print(json.dumps(figures, indent=2))
     elif hasattr(module, "format_table"):

@@ -20,3 +20,10 @@ def test_bench_quick_returns_its_keys(monkeypatch):
     assert {"obs_encoder.onnx", "denoiser.onnx", "text_encoder.onnx", "stats.npz", "total"} <= set(f["bytes"])
     assert f["bytes"]["total"] < 60e6
     assert "chunk" in format_table(f)
+
+
+def test_bench_policy_takes_a_bundle_and_only_the_policy_area_does(capsys):
+    from runtime.cli import main
+
+    assert main(["bench", "sim", "--quick", "--policy", "policy/bundles/multitask"]) == 2
+    assert "--policy BUNDLE is for `sudd bench policy`" in capsys.readouterr().err

@@ -128,3 +128,12 @@ def test_export_refuses_a_locator_without_the_query_or_a_run_that_is_no_locator(
         export(root / "plain", tmp_path / "y", cache_dir=CACHE, goal_locator=root / "run",
                goal_query={"families": ["stack"], "data": root / "data", "ticks": 2})
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_the_policy_bench_times_a_goal_query_bundle_and_its_goal_point(located):
+    from policy.bench import format_table, run_policy_bench
+
+    root, _ = located
+    f = run_policy_bench(quick=True, bundle=root / "bundle", threads=(1,))
+    assert f["goal_point"]["p50_ms"] > 0 and f["obs_encoder"]["p50_ms"] > 0
+    assert f["bytes"]["goal_locator.onnx"] > 0 and "goal_point" in format_table(f)
