@@ -229,6 +229,12 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         if checkpoint is not None or not ema:
             raise ValueError(f"{run_dir} is a bundle: it holds one set of weights (the export's), so --checkpoint and "
                              "--no-ema do not apply; give the run directory to choose its checkpoint")
+        asked = json.loads((run_dir / "manifest.json").read_text()).get("goal_query")
+        if asked and goal_query is None:  # its table and locator are measured, not rebuilt from the graphs
+            raise ValueError(f"{run_dir} asks a goal query for {', '.join(asked.get('families', []))}"
+                             f"{' of its goal locator' if asked.get('locator') else ''}; exported again without "
+                             "--goal-query it would not: give --goal-query FAMILY --goal-query-data DATA"
+                             f"{' --goal-locator RUN' if asked.get('locator') else ''} again")
         model, normalizer, data_info, training, kept = _bundle_source(run_dir)
         pace = kept if pace is None else pace
     else:

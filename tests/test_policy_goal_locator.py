@@ -127,7 +127,9 @@ def test_export_refuses_a_locator_without_the_query_or_a_run_that_is_no_locator(
     with pytest.raises(ValueError, match="not a goal locator"):
         export(root / "plain", tmp_path / "y", cache_dir=CACHE, goal_locator=root / "run",
                goal_query={"families": ["stack"], "data": root / "data", "ticks": 2})
-    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    with pytest.raises(ValueError, match="--goal-locator RUN again"):  # the query would be lost silently
+        export(root / "bundle", tmp_path / "z", cache_dir=CACHE, pace={"stack": 0.5})
+    assert not any((tmp_path / d).exists() for d in ("x", "y", "z"))
 
 
 def test_the_policy_bench_times_a_goal_query_bundle_and_its_goal_point(located):
