@@ -315,12 +315,11 @@ class Bundle:
         if not (self.goal_query is not None and self.goal_query.locator):
             return self.grasp_point(images, proprio, text_embedding, stage)
         feeds, p = self._checked_feeds(images, proprio, text_embedding)
-        feeds.pop("proprio")
         points = self.sessions["goal_locator"].run(None, feeds)[0][0]
         return points_from_tcp(points[None, :3] * AUX_TCP_SCALE, p[-1, :9])[0].astype(np.float32)
 
     def _checked_feeds(self, images, proprio, text_embedding) -> tuple[dict, np.ndarray]:
-        """The graphs' image, raw proprio and text feeds after checking them, and the proprio as float32."""
+        """The graphs' image and text feeds after checking them, and the checked proprio as float32."""
         To, (H, W) = self.obs_horizon, self.image_size
         feeds = {}
         for c in self.cameras:
@@ -335,7 +334,7 @@ class Bundle:
         e = np.asarray(text_embedding, np.float32).reshape(-1)
         if e.shape != (self.instruction_dim,) or not np.all(np.isfinite(e)):
             raise ValueError(f"text_embedding: expected finite ({self.instruction_dim},) (Bundle.embed), got {e.shape}")
-        feeds["proprio"], feeds["text_embedding"] = p, e[None]
+        feeds["text_embedding"] = e[None]
         return feeds, p
 
     def _encode(self, images, proprio, text_embedding, stage: int, release) -> list[np.ndarray]:

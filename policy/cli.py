@@ -90,10 +90,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "views, to find the bin while carrying without moving the features the grasp reads; "
                           "measured: release 14.5 -> 10.4 cm, but the grasp point 2.35 -> 4.4 cm)")
     pre.add_argument("--goal-locator", action="store_true", help=(
-        "train a goal locator for the goal query instead (policy/goal_locator.py): a copy of --init-from's "
-        "encoders and head taught, on the views at home, where the role-swapped command's object is (the release "
-        "point), validated by the query's error on --data's episodes; export it with `sudd export BUNDLE "
-        "--goal-query stack --goal-query-data DATA --goal-locator RUN`"))
+        "train a goal locator for the goal query instead (policy/goal_locator.py): a copy of --init-from's encoders "
+        "and head taught, on the views at home, where the role-swapped command's object is, validated by the query's "
+        "error on --data's episodes; export it with `sudd export BUNDLE --goal-query stack ... --goal-locator RUN`"))
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
@@ -259,12 +258,11 @@ def _pretrain(args) -> int:
                        episode_tasks=tuple(args.episode_task), goal_locator=args.goal_locator)
     val = summary["validation"] or {}
     if args.goal_locator:
-        before = summary["goal_query_before"]
+        b = summary["goal_query_before"]
         print(json.dumps(summary, indent=2) if args.json else
-              f"goal locator {summary['run_dir']}: {summary['views']} home views of {summary['scenes']} scenes; the "
-              f"goal query's release point on {args.data}'s episodes {before['goal_cm_median']:.2f} cm off (median; "
-              f"p75 {before['goal_cm_p75']:.2f}) with --init-from's head, {val['goal_cm_median']:.2f} cm (p75 "
-              f"{val['goal_cm_p75']:.2f}) with the locator; next: sudd export {args.init_from} --out BUNDLE "
+              f"goal locator {summary['run_dir']} ({summary['views']} home views): the goal query's release point "
+              f"on {args.data} {b['goal_cm_median']:.2f} -> {val['goal_cm_median']:.2f} cm off (median; p75 "
+              f"{b['goal_cm_p75']:.2f} -> {val['goal_cm_p75']:.2f}); next: sudd export {args.init_from} --out BUNDLE "
               f"--goal-query FAMILY --goal-query-data DATA --goal-locator {summary['run_dir']}")
         return 0
     print(json.dumps(summary, indent=2) if args.json else

@@ -50,7 +50,7 @@ import torch
 from policy.bundle import sha256_file
 from policy.config import TEXT_DIM, PolicyConfig
 from policy.goal_locator import GRAPH as LOCATOR_GRAPH
-from policy.goal_locator import LocatorGraph
+from policy.goal_locator import LocatorGraph, load_locator
 from policy.goal_locator import graph_spec as locator_spec
 from policy.graph_frames import with_release
 from policy.model import DiffusionPolicy, count_params, film_dim, prepare_images
@@ -258,39 +258,16 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
 
         check_pace_table({f: 1.0 for f in goal_query["families"]}, data_info.get("tasks", []), "--goal-query")
         if goal_locator is not None:
-            locator = _load_locator(goal_locator, model.cfg)
+            locator, record = load_locator(goal_locator, model.cfg)
         table = measure(model, normalizer, goal_query["data"], list(goal_query["families"]),
                         goal_query.get("ticks", 3), locator=locator)
         if locator is not None:
-            table["locator_from"] = {"run": str(goal_locator), **_locator_record(goal_locator)}
+            table["locator_from"] = {"run": str(goal_locator), **record}
         overrides["release_input"] = True
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
                         text_encoder_from, pace, table, locator)
-
-
-def _load_locator(run_dir: str | Path, policy_cfg: PolicyConfig):
-    """A `sudd pretrain --goal-locator` run's model (EMA weights), checked to read the policy's inputs."""
-    from policy.goal_locator import check_compatible
-    from policy.train import load_run_model
-
-    record = _locator_record(run_dir)
-    if not record.get("goal_locator"):
-        raise ValueError(f"--goal-locator {run_dir}: not a goal locator run (its dataset.json's pretrain has no "
-                         "goal_locator: true); train one with `sudd pretrain --goal-locator --init-from BUNDLE`")
-    locator, cfg, _ = load_run_model(run_dir)
-    check_compatible(policy_cfg, cfg)
-    return locator
-
-
-def _locator_record(run_dir: str | Path) -> dict:
-    path = Path(run_dir) / "dataset.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"--goal-locator {run_dir}: no dataset.json there; give a `sudd pretrain "
-                                "--goal-locator` run directory")
-    pre = json.loads(path.read_text()).get("pretrain") or {}
-    return {k: pre[k] for k in ("goal_locator", "views", "view_count", "scenes") if k in pre}
 
 
 def _bundle_source(bundle_dir: Path):

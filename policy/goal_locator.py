@@ -21,6 +21,9 @@ goal_query says "locator": true), and the bundle's `goal_point` reads it in plac
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -82,6 +85,24 @@ def graph_spec(cfg) -> dict:
             "inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in cfg.cameras]
             + [io("text_embedding", ["B", cfg.text_input_dim], "float32")],
             "outputs": [io("aux_points", ["B", cfg.aux_dim], "float32")]}
+
+
+def load_locator(run_dir: str | Path, policy_cfg):
+    """(model with EMA weights, its views record) of a `sudd pretrain --goal-locator` run, checked to read the
+    policy's inputs."""
+    from policy.train import load_run_model
+
+    path = Path(run_dir) / "dataset.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"--goal-locator {run_dir}: no dataset.json there; give a `sudd pretrain "
+                                "--goal-locator` run directory")
+    pre = json.loads(path.read_text()).get("pretrain") or {}
+    if not pre.get("goal_locator"):
+        raise ValueError(f"--goal-locator {run_dir}: not a goal locator run (its dataset.json's pretrain has no "
+                         "goal_locator: true); train one with `sudd pretrain --goal-locator --init-from BUNDLE`")
+    locator, cfg, _ = load_run_model(run_dir)
+    check_compatible(policy_cfg, cfg)
+    return locator, {k: pre[k] for k in ("goal_locator", "views", "view_count", "scenes") if k in pre}
 
 
 def check_compatible(policy_cfg, locator_cfg) -> None:
