@@ -124,6 +124,11 @@ class PolicyConfig:
     aux_condition_noise: float = field(default=0.1, metadata=spec(0.0, 10.0, doc=(
         "std of the Gaussian noise on the true points fed in training, in the head's units (tcp frame: "
         "0.25 m per unit), so the denoiser learns to follow a point about as wrong as the head's")))
+    aux_release_noise: float | None = field(default=None, metadata=spec(0.0, 10.0, doc=(
+        "the same std for the release point alone (None: aux_condition_noise). Why apart: the denoiser follows a "
+        "point only as far as training's noise lets it trust it (0.1 = 2.5 cm a side: a 3 cm move of the release "
+        "point moves the chunk 1.5-1.8 cm), and a goal query's release point (stack's locator: 2.3 cm off) is "
+        "better than the head's grasp point")))
     image_cond_dropout: float = field(default=0.0, metadata=spec(0.0, 1.0, doc=(
         "share of training samples whose image features are hidden from the denoiser (zeroed in its cond; the "
         "aux head still reads them), so it must act on the aux points; 1 = never shown, at inference too: a "
@@ -202,6 +207,10 @@ class PolicyConfig:
         if self.aux_condition_source == "head" and not self.aux_condition:
             raise ConfigError("aux_condition_source 'head' needs aux_condition = true (it says what the denoiser's "
                               "aux inputs are in training)")
+        if self.aux_release_noise is not None and not (self.aux_condition and self.aux_condition_source == "truth"):
+            raise ConfigError(f"aux_release_noise {self.aux_release_noise} needs aux_condition = true and "
+                              f"aux_condition_source 'truth' (got {self.aux_condition}, {self.aux_condition_source!r}): "
+                              "it is the noise on the true release point training feeds the denoiser")
         if self.image_cond_dropout > 0 and not self.aux_condition:
             raise ConfigError(f"image_cond_dropout {self.image_cond_dropout} needs aux_condition = true (without "
                               "the aux points a denoiser with hidden images has no view of the scene)")

@@ -326,13 +326,20 @@ class DiffusionPolicy(nn.Module):
             if self.cfg.aux_condition_source == "head":
                 fed = self.aux_points(features).detach()
             else:
-                fed = batch["aux"] if aux_noise is None else batch["aux"] + self.cfg.aux_condition_noise * aux_noise
+                fed = batch["aux"] if aux_noise is None else batch["aux"] + self.aux_noise_scale(aux_noise) * aux_noise
             cond = torch.cat([self.shown_features(features, image_keep),
                               self.points_for_denoiser(fed, batch["proprio"])], dim=1)
         loss = F.mse_loss(*self.denoise_target(cond, batch["action"], noise, timesteps))
         if self.aux_head is not None:
             loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_points(features), batch["aux"])
         return loss
+
+    def aux_noise_scale(self, like: torch.Tensor) -> torch.Tensor:
+        """(aux_dim,) teacher forcing's noise std per aux input (aux_release_noise for the release point's 3)."""
+        scale = torch.full((self.cfg.aux_dim,), self.cfg.aux_condition_noise, dtype=like.dtype, device=like.device)
+        if self.cfg.aux_release_noise is not None:
+            scale[3:6] = self.cfg.aux_release_noise
+        return scale
 
     def denoise_target(self, cond: torch.Tensor, action: torch.Tensor, noise: torch.Tensor,
                        timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -79,6 +79,30 @@ def test_training_feeds_the_true_points_plus_scaled_noise():
         assert abs(denoiser_term[0] - denoiser_term[1]) > 1e-6  # the denoiser sees the fed points
 
 
+def test_the_release_point_can_have_its_own_teacher_forcing_noise():
+    with pytest.raises(ConfigError, match="aux_release_noise"):
+        load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_release_noise": -0.1})
+    with pytest.raises(ConfigError, match="aux_release_noise 0.02 needs aux_condition"):
+        load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_source": "head",
+                                  "aux_release_noise": 0.02})
+    cfg = load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": 0.5,
+                                    "aux_release_noise": 0.0})
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    b = _batch(cfg)
+    noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
+    z = torch.randn(3, AUX_DIM)
+    mse = torch.nn.functional.mse_loss
+    with torch.no_grad():
+        features = model.obs_encoder(b["images"], b["proprio"], b["text"])
+        fed = b["aux"].clone()
+        fed[:, :3] += 0.5 * z[:, :3]  # the grasp point noisy, the release point as recorded
+        want = mse(*model.denoise_target(torch.cat([features, fed], dim=1), b["action"], noise, t))
+        torch.testing.assert_close(model.loss(b, noise, t, z), want + mse(model.aux_points(features), b["aux"]))
+    default = DiffusionPolicy(load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": 0.5}))
+    torch.testing.assert_close(default.aux_noise_scale(z), torch.full((AUX_DIM,), 0.5))
+
+
 def test_head_source_trains_the_denoiser_on_what_inference_feeds():
     with pytest.raises(ConfigError, match="aux_condition_source 'head' needs aux_condition"):
         load_policy_config(TINY, {**AUX, "aux_condition_source": "head"})
