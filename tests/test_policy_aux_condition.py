@@ -38,6 +38,14 @@ def _batch(cfg, B=3, seed=0):
             "aux": torch.randn(B, AUX_DIM, generator=g)}
 
 
+def _loss_inputs(cfg):
+    """A seeded model in eval mode, a batch, the action noise, timesteps and the aux noise for its loss."""
+    torch.manual_seed(0)
+    model = DiffusionPolicy(cfg).eval()
+    b = _batch(cfg)
+    return model, b, torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90]), torch.randn(3, AUX_DIM)
+
+
 def test_aux_condition_needs_the_aux_head():
     with pytest.raises(ConfigError, match="aux_condition needs aux_target_weight"):
         load_policy_config(TINY, {"aux_condition": True})
@@ -62,11 +70,7 @@ def test_inference_cond_ends_with_the_heads_prediction():
 
 def test_training_feeds_the_true_points_plus_scaled_noise():
     cfg = load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": 0.5})
-    torch.manual_seed(0)
-    model = DiffusionPolicy(cfg).eval()
-    b = _batch(cfg)
-    noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
-    z = torch.randn(3, AUX_DIM)
+    model, b, noise, t, z = _loss_inputs(cfg)
     mse = torch.nn.functional.mse_loss
     with torch.no_grad():
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
@@ -87,11 +91,7 @@ def test_the_release_point_can_have_its_own_teacher_forcing_noise():
                                   "aux_release_noise": 0.02})
     cfg = load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": 0.5,
                                     "aux_release_noise": 0.0})
-    torch.manual_seed(0)
-    model = DiffusionPolicy(cfg).eval()
-    b = _batch(cfg)
-    noise, t = torch.randn(3, cfg.pred_horizon, cfg.action_dim), torch.tensor([3, 50, 90])
-    z = torch.randn(3, AUX_DIM)
+    model, b, noise, t, z = _loss_inputs(cfg)
     mse = torch.nn.functional.mse_loss
     with torch.no_grad():
         features = model.obs_encoder(b["images"], b["proprio"], b["text"])
