@@ -242,10 +242,13 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
 
         model, _, training = load_run_model(run_dir, checkpoint, ema)
         warm = read_record(run_dir)
-        if warm is not None:
-            training["warm_start"] = warm
         normalizer = Normalizer.load(run_dir / "stats.npz")
         data_info = json.loads((run_dir / "dataset.json").read_text())
+        if warm is not None:  # what the warm start had learned, this run knows too (policy.warm_start.learned)
+            before = warm.pop("learned", {})
+            for key in ("tasks", "instructions"):
+                data_info[key] = sorted(set(data_info.get(key, [])) | set(before.get(key, [])))
+            training["warm_start"] = {**warm, "learned_instructions": len(before.get("instructions", []))}
         if "gripper_levels" not in data_info:
             data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
     overrides = {k: v for k, v in (("inference_steps", inference_steps), ("noise_scale", noise_scale))

@@ -63,14 +63,31 @@ def load_into(model: torch.nn.Module, source_run: str | Path) -> dict:
 
     if is_bundle(source_run):
         old, record = _from_bundle(source_run)
-        return {**record, **_copy_into(model, old, Path(source_run) / "manifest.json")}
+        return {**record, **_copy_into(model, old, Path(source_run) / "manifest.json"), "learned": learned(source_run)}
     path = source_checkpoint(source_run)
     state = torch.load(path, map_location="cpu", weights_only=False)
     old = state["ema"]["model"]
-    if is_pretrain_run(source_run):
+    pretrain = is_pretrain_run(source_run)
+    if pretrain:
         old = {k: v for k, v in old.items() if k.startswith(tuple(p + "." for p in PRETRAINED))}
     return {"source": str(source_run), "checkpoint": str(path), "step": int(state["step"]),
-            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path)}
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path),
+            **({} if pretrain else {"learned": learned(source_run)})}
+
+
+def learned(source: str | Path) -> dict:
+    """{"tasks", "instructions"} a policy's weights were trained on: a bundle's manifest lists them; a run's are
+    its data's and its own warm start's. Why: a fine-tune on a few families' episodes still knows the others,
+    and its bundle must list them, or the policy node refuses their commands (runtime.nodes.policy_node)."""
+    from policy.bundle_import import is_bundle
+
+    source = Path(source)
+    if is_bundle(source):
+        m = json.loads((source / "manifest.json").read_text())
+        return {"tasks": sorted(m.get("tasks", [])), "instructions": sorted(m.get("instructions", []))}
+    info = json.loads((source / "dataset.json").read_text()) if (source / "dataset.json").is_file() else {}
+    before = (read_record(source) or {}).get("learned", {})
+    return {k: sorted(set(info.get(k, [])) | set(before.get(k, []))) for k in ("tasks", "instructions")}
 
 
 def load_pretrained_into(model: torch.nn.Module, pretrain_run: str | Path, normalizer: Normalizer) -> dict:

@@ -70,6 +70,27 @@ def test_a_run_warm_started_from_a_bundle_starts_from_its_weights(exported):
         torch.testing.assert_close(after.state_dict()[name], value, msg=name)
 
 
+def test_a_fine_tune_on_some_families_still_lists_what_its_warm_start_learned(exported):
+    """Fine-tuned on one family's episodes, the weights still know the bundle's other families and commands:
+    the export lists them all (the policy node accepts only listed commands), and says how many came along."""
+    data = synthetic_dataset(exported / "data_do", episodes=2, tasks=("drawer_open",),
+                             instructions={"drawer_open": "open the cupboard"})
+    run, out = exported / "ft_do", exported / "bundle_ft"
+    train(data, exported / "bundle", run, steps=2, embedder=hash_embedder, progress=False, threads=1,
+          init_from=exported / "bundle")
+    chained = exported / "ft_do2"  # a run from that run: the chain's instructions carry on
+    train(data, exported / "bundle", chained, steps=1, embedder=hash_embedder, progress=False, threads=1,
+          init_from=run)
+    source = json.loads((exported / "bundle/manifest.json").read_text())
+    export(chained, out, cache_dir=CACHE)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert "drawer_open" not in source["tasks"] and source["instructions"]
+    assert manifest["tasks"] == sorted({*source["tasks"], "drawer_open"})
+    assert manifest["instructions"] == sorted({*source["instructions"], "open the cupboard"})
+    assert manifest["training"]["warm_start"]["learned_instructions"] == len(source["instructions"]) + 1
+    assert "learned" not in manifest["training"]["warm_start"]
+
+
 SHIPPED = sorted(p.parent.name for p in (ROOT / "policy/bundles").glob("*/manifest.json"))
 
 
