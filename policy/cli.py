@@ -344,7 +344,9 @@ def _export(args) -> int:
             print(f"goal query ({', '.join(manifest['goal_query']['families'])}, {q['episodes']} episodes; {asked} "
                   f"answer): release point {q['release_cm_median']:.1f} cm off (median; the head's own release point "
                   f"{q['head_release_cm_median']:.1f})")
-    _record_sensitivity(Path(args.out), manifest, quiet=args.json)
+    from policy.sensitivity import record_in_manifest
+
+    record_in_manifest(Path(args.out), manifest, quiet=args.json)
     return 0
 
 
@@ -353,31 +355,6 @@ def _pace_option(spec: str) -> dict[str, float]:
     from sim.tasks import task_names
 
     return parse_pace(spec, task_names()) if spec else {}
-
-
-def _record_sensitivity(bundle_dir: Path, manifest: dict, quiet: bool) -> None:
-    """Add policy.sensitivity's figures to the manifest when the run's data is at hand, and say if the
-    policy ignores a camera (a blind policy drives to the average target)."""
-    from policy.bundle import Bundle
-    from policy.sensitivity import blind_cameras, input_sensitivity
-
-    data = (manifest.get("data") or {}).get("path")
-    if not data or not Path(data).is_dir():
-        if not quiet:
-            print(f"input sensitivity: skipped (the run's data {data!r} is not here)")
-        return
-    figures = input_sensitivity(Bundle.load(bundle_dir, intra_op_num_threads=1), data)
-    manifest["input_sensitivity"] = figures
-    (bundle_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
-    if quiet:
-        return
-    shown = ", ".join(f"{k} {v:.1f}" for k, v in figures.items() if k not in ("samples", "unit"))
-    print(f"input sensitivity (mm the executed chunk moves when one input is swapped): {shown}")
-    blind = blind_cameras(figures)
-    if blind:
-        print(f"warning: the policy ignores camera(s) {', '.join(blind)}: swapping them moves the chunk less than "
-              "a fifth of its own sampling spread. It will follow proprioception to the average target; train "
-              "longer or change the image encoder (policy/sensitivity.py says more).")
 
 
 def _restore(args) -> int:

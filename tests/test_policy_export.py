@@ -297,6 +297,42 @@ def test_input_sensitivity_finds_the_inputs_a_policy_ignores(run, bundle):
     assert set(real) >= {"image_scene", "image_wrist", "proprio", "text", "noise"} and real["noise"] > 0
 
 
+class _Follower(_StandIn):
+    """A stand-in that goes `gain` of the way from the recorded proprio to a given release point."""
+
+    obs_horizon, release_input = 1, True
+
+    def __init__(self, gain):
+        super().__init__(set())
+        self.gain = gain
+
+    def act(self, images, proprio, emb, noise=None, rng=None, release=None):
+        a = np.zeros((self.pred_horizon, self.action_dim), np.float32)
+        a[:, :3] = (1 - self.gain) * proprio[-1, :3] + self.gain * np.asarray(release[:3])
+        return a
+
+
+def test_release_gain_says_how_far_the_chunk_follows_a_given_release_point(run, tmp_path):
+    from datagen.store import ShardWriter
+    from datagen.workers import synthetic_episode
+    from policy.sensitivity import release_gain
+    from policy.testing import smooth_episode
+
+    with pytest.raises(ValueError, match="no episode with a release"):  # the smooth episodes only close
+        release_gain(_Follower(1.0), run.parent / "data", episodes=4)
+    data = tmp_path / "data"
+    with ShardWriter(data, "w0") as w:
+        for seed in range(3):
+            ep = synthetic_episode("stack", seed)
+            smooth_episode(ep, seed)
+            ep.action[int(0.8 * len(ep)):, -1] = 0.0  # let go near the end
+            w.append(ep)
+    full, half = release_gain(_Follower(1.0), data, episodes=4), release_gain(_Follower(0.5), data, episodes=4)
+    assert full["samples"] > 0 and (full["x"], full["y"], full["off_cm"]) == (1.0, 1.0, 0.0)
+    assert (half["x"], half["y"]) == (0.5, 0.5) and half["off_cm"] > 0
+    assert release_gain(_Follower(0.0), data, episodes=4)["x"] == 0.0
+
+
 def test_the_bundle_carries_the_gripper_levels_and_an_older_run_reads_them_from_its_data(run, bundle_dir, tmp_path):
     import shutil
 
