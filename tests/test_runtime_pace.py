@@ -99,7 +99,7 @@ def test_text_of_no_family_plays_at_the_default_speed():
 def test_the_shipped_bundle_plays_the_drawers_slower_and_every_instruction_has_its_family():
     m = json.loads((Path(__file__).parents[1] / "policy/bundles/multitask/manifest.json").read_text())
     pace = bundle_pace(m)
-    assert pace.speed("drawer_close") == 0.5 and pace.speed("drawer_open") == 0.75
+    assert pace.speed("drawer_close") == 0.5 and pace.speed("drawer_open") == 0.5
     assert pace.speed("pick_place") == pace.speed("stack") == pace.speed("drawer_put") == 1.0
     families = {task_of_instruction(i) for i in m["instructions"]}
     assert families == set(m["tasks"])
