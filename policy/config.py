@@ -128,7 +128,7 @@ class PolicyConfig:
         "the same std for the release point alone (None: aux_condition_noise). Why apart: the denoiser follows a "
         "point only as far as training's noise lets it trust it (0.1 = 2.5 cm a side: a 3 cm move of the release "
         "point moves the chunk 1.5-1.8 cm), and a goal query's point can be better than the head's grasp point. "
-        "Measured (policy/EXPERIMENTS.md, \"How far the denoiser follows the release point\"): a fine-tune at 0.02 "
+        "Measured (policy/EXPERIMENTS.md, \"Stack's placing\"): a fine-tune at 0.02 "
         "follows 0.7 of a move, at 0.1 0.5, and both stack 55 of 100")))
     image_cond_dropout: float = field(default=0.0, metadata=spec(0.0, 1.0, doc=(
         "share of training samples whose image features are hidden from the denoiser (zeroed in its cond; the "
@@ -253,6 +253,15 @@ class PolicyConfig:
     def aux_dim(self) -> int:
         """The aux head's outputs: the grasp and release points, then with aux_grasp_axis the axis label."""
         return AUX_DIM + (AXIS_DIM if self.aux_grasp_axis else 0)
+
+    @property
+    def aux_noise_std(self) -> tuple[float, ...]:
+        """Teacher forcing's noise std per aux input: aux_condition_noise, the release point's 3 aux_release_noise
+        where set."""
+        std = [self.aux_condition_noise] * self.aux_dim
+        if self.aux_release_noise is not None:
+            std[3:6] = [self.aux_release_noise] * 3
+        return tuple(std)
 
     def to_dict(self) -> dict:
         return as_dict(self)

@@ -309,37 +309,26 @@ class DiffusionPolicy(nn.Module):
              aux_noise: torch.Tensor | None = None, image_keep: torch.Tensor | None = None) -> torch.Tensor:
         """MSE of the denoiser's prediction (`denoise_target`) plus, with an aux head, of its points.
 
-        batch: images {camera: (B, To, 3, h, w) float}, proprio (B, To, Dp), text (B, 384), action (B, Tp, Da)
-        (all normalized), aux (B, cfg.aux_dim) (only with aux_target_weight, see policy.data.grasp_and_release);
-        instead of images, image_features (B, To, cameras x image_feature_dim) (policy.feature_cache);
-        noise (B, Tp, Da) ~ N(0, I); timesteps (B,) int64 in [0, num_train_timesteps).
-        aux_noise (B, cfg.aux_dim) ~ N(0, I), with aux_condition: the denoiser is conditioned on the true points plus
-        aux_condition_noise times this (teacher forcing: it learns to follow the points from the first step,
-        while the head's own predictions are still poor); None = the true points. With aux_condition_source
-        "head" it is conditioned on the head's detached prediction instead, as at inference.
-        image_keep (B,) of 0/1, with image_cond_dropout: 0 hides that sample's image features from the
-        denoiser; None = what inference does (hidden only when image_cond_dropout is 1).
-        """
+        batch: images {camera: (B, To, 3, h, w) float} or image_features (B, To, cameras x image_feature_dim)
+        (policy.feature_cache), proprio (B, To, Dp), text (B, 384), action (B, Tp, Da) (all normalized), aux
+        (B, cfg.aux_dim) (with aux_target_weight: policy.data.grasp_and_release); noise (B, Tp, Da) ~ N(0, I);
+        timesteps (B,) int64 in [0, num_train_timesteps). aux_noise (B, aux_dim) ~ N(0, I), with aux_condition:
+        the denoiser gets the true points plus cfg.aux_noise_std times this (teacher forcing), None = the true
+        points; with aux_condition_source "head" the head's detached prediction, as at inference. image_keep (B,)
+        of 0/1, with image_cond_dropout: 0 hides that sample's image features (None: as inference does)."""
         features = self.obs_encoder(batch.get("images"), batch["proprio"], batch["text"], batch.get("image_features"))
         cond = features
         if self.cfg.aux_condition:
             if self.cfg.aux_condition_source == "head":
                 fed = self.aux_points(features).detach()
             else:
-                fed = batch["aux"] if aux_noise is None else batch["aux"] + self.aux_noise_scale(aux_noise) * aux_noise
+                fed = batch["aux"] if aux_noise is None else batch["aux"] + aux_noise.new_tensor(self.cfg.aux_noise_std) * aux_noise
             cond = torch.cat([self.shown_features(features, image_keep),
                               self.points_for_denoiser(fed, batch["proprio"])], dim=1)
         loss = F.mse_loss(*self.denoise_target(cond, batch["action"], noise, timesteps))
         if self.aux_head is not None:
             loss = loss + self.cfg.aux_target_weight * F.mse_loss(self.aux_points(features), batch["aux"])
         return loss
-
-    def aux_noise_scale(self, like: torch.Tensor) -> torch.Tensor:
-        """(aux_dim,) teacher forcing's noise std per aux input (aux_release_noise for the release point's 3)."""
-        scale = torch.full((self.cfg.aux_dim,), self.cfg.aux_condition_noise, dtype=like.dtype, device=like.device)
-        if self.cfg.aux_release_noise is not None:
-            scale[3:6] = self.cfg.aux_release_noise
-        return scale
 
     def denoise_target(self, cond: torch.Tensor, action: torch.Tensor, noise: torch.Tensor,
                        timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -100,7 +100,7 @@ def test_the_release_point_can_have_its_own_teacher_forcing_noise():
         want = mse(*model.denoise_target(torch.cat([features, fed], dim=1), b["action"], noise, t))
         torch.testing.assert_close(model.loss(b, noise, t, z), want + mse(model.aux_points(features), b["aux"]))
     default = DiffusionPolicy(load_policy_config(TINY, {**AUX, "aux_condition": True, "aux_condition_noise": 0.5}))
-    torch.testing.assert_close(default.aux_noise_scale(z), torch.full((AUX_DIM,), 0.5))
+    torch.testing.assert_close(z.new_tensor(default.cfg.aux_noise_std), torch.full((AUX_DIM,), 0.5))
 
 
 def test_head_source_trains_the_denoiser_on_what_inference_feeds():
