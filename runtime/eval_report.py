@@ -72,6 +72,8 @@ def summarise(records: list[dict]) -> list[dict]:
                      "release_off_cm": {"success": _last_release_cm(ok), "target_not_placed": _last_release_cm(tnp)},
                      "release_aim_off_cm": {"success": _last_release_cm(ok, "aim_"),
                                             "target_not_placed": _last_release_cm(tnp, "aim_")},
+                     "release_over_cm": {"success": _last_release_over_cm(ok),
+                                         "target_not_placed": _last_release_over_cm(tnp)},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end"))),
                      "failed_drawer_opened": sum(f >= OPEN_FRACTION for f in drawer) if drawer else None})
     return rows
@@ -84,6 +86,13 @@ def _last_release_cm(records: list[dict], prefix: str = "") -> float | None:
     last = [r["releases"][-1] for r in records if r.get("releases")]
     off = [math.hypot(x[f"{prefix}dx_cm"], x[f"{prefix}dy_cm"]) for x in last if x.get(f"{prefix}dx_cm") is not None]
     return median(off) if off else None
+
+
+def _last_release_over_cm(records: list[dict]) -> float | None:
+    """Median over the stack records that let go of the named block: how high over resting on the other it last
+    left the fingers; None when none recorded it (a task with a bin)."""
+    over = [r["releases"][-1]["over_cm"] for r in records if r.get("releases") and "over_cm" in r["releases"][-1]]
+    return median(over) if over else None
 
 
 def markdown_table(rows: list[dict]) -> str:
@@ -111,7 +120,8 @@ def failure_table(rows: list[dict]) -> str:
              + " | force stops: TCP speed at the stop (median); how many with the fingers closed "
              "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
              "| target_not_placed: the object ended "
-             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) "
+             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; stack: how high "
+             "over resting on the other) "
              f"| drawer opened (>= {OPEN_FRACTION:.0%} of its travel) |",
              "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 6)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
@@ -125,7 +135,9 @@ def failure_table(rows: list[dict]) -> str:
         cells.append(", ".join(f"{e} {where[e]}" for e in TARGET_ENDS if where.get(e)) or "-")
         off = (r.get("release_off_cm") or {}).get("target_not_placed")
         aim = (r.get("release_aim_off_cm") or {}).get("target_not_placed")
-        cells.append("-" if off is None else f"{off:.1f} cm" + ("" if aim is None else f" (aimed {aim:.1f} cm)"))
+        over = (r.get("release_over_cm") or {}).get("target_not_placed")
+        cells.append("-" if off is None else f"{off:.1f} cm" + ("" if aim is None else f" (aimed {aim:.1f} cm)")
+                     + ("" if over is None else f", {over:.1f} cm over its rest"))
         opened = r.get("failed_drawer_opened")
         cells.append("-" if opened is None else str(opened))
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")

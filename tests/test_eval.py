@@ -71,6 +71,23 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert np.hypot(release["aim_dx_cm"] - release["tcp_dx_cm"], release["aim_dy_cm"] - release["tcp_dy_cm"]) < 1.0
 
 
+def test_a_stack_release_says_how_far_off_and_how_high_over_the_block_below():
+    from datagen.episode import DatagenConfig, run_episode
+
+    ep = run_episode("stack", SEED, DatagenConfig(dr="heavy"))
+    assert ep.meta["success"]
+    out = run_policy_episode(Replay(ep.action), "stack", SEED, dr="heavy")
+    assert out.success, out.record()
+    (release,) = out.releases  # the collector lets go 1.2 cm over resting on it, centred on it
+    assert np.hypot(release["dx_cm"], release["dy_cm"]) < 1.5 and 0.0 < release["over_cm"] < 2.5, release
+    # let go 6 cm higher (the arm stops short of the last 6 cm), the same block reads that much over its rest
+    high = ep.action.copy()
+    opens = int(np.flatnonzero(np.diff(high[:, -1]) < -0.2)[-1]) + 1  # the release: the gripper channel drops
+    high[opens - 8:, 2] += 0.06
+    out = run_policy_episode(Replay(high), "stack", SEED, dr="heavy")
+    assert abs(out.releases[0]["over_cm"] - release["over_cm"] - 6.0) < 1.0, out.record()
+
+
 @pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
 def test_a_failure_says_where_the_named_object_ended(collected, change, where):
     actions = np.array(collected.action)
@@ -351,14 +368,21 @@ def test_summary_table_and_chart(tmp_path):
                       "| ended: timeout | force stops: TCP speed at the stop (median); how many with the fingers closed "
                       "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
                       "| target_not_placed: the object ended "
-                      "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP) "
-                      "| drawer opened (>= 80% of its travel) |")
+                      "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; "
+                      "stack: how high over resting on the other) | drawer opened (>= 80% of its travel) |")
     # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm)
     assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | 17.5 cm/s; 1 closed | - | - | held 1, outside 2 "
                        "| 15.0 cm (aimed 5.0 cm) | - |",
                        "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | - | 7.2 cm | 85 deg | - | - | - |"]
     assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
     assert rows[1]["release_aim_off_cm"] == {"success": None, "target_not_placed": 5.0}
+    assert rows[1]["release_over_cm"] == {"success": None, "target_not_placed": None}  # bins: no block below
+    stack = [{"suite": "seen", "task": "stack", "who": "policy", "success": False, "sim_seconds": 30.0,
+              "failure": "target_not_placed", "end": "timeout", "target_end": "released",
+              "releases": [{"dx_cm": 0.0, "dy_cm": d, "over_cm": h}]} for d, h in ((2.0, 3.0), (3.0, 5.0), (4.0, 1.0))]
+    (row,) = summarise(stack)
+    assert row["release_over_cm"]["target_not_placed"] == 3.0
+    assert "| released 3 | 3.0 cm, 3.0 cm over its rest | - |" in failure_table([row])
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
