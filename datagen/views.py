@@ -98,28 +98,38 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
 
 
 def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout(), fidelity: str = "fast",
-                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK, stage: str = "") -> dict:
+                image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK, stage: str = "",
+                at_home: bool = False) -> dict:
     """`views` labelled views of the heavy-DR `task` scene of `seed` (the same seed always gives the same
     views), then for a family that carries an object (pick_place, stack) up to `carry` views with it in the
     closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails).
     A long task's later `stage` (datagen/views_stages.py) shows the scene as the collector leaves it before
-    that grasp, the views on the way there from the last release; `offsets` are that stage's."""
+    that grasp, the views on the way there from the last release; `offsets` are that stage's. `at_home`: the
+    scene as the episode starts instead (the drawer shut, the arm at home), with the later stage's labels (where
+    the object will be taken from and put), for a question asked at the start (policy/goal_locator.py)."""
     if carry:
         check_carries(task)
     index = stage_index(task, stage)
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5, index] if index else [int(seed), 0x71E5])
+    if at_home and index != 1:
+        raise ValueError(f"at_home views label a later grasp from the start; {task}'s {stage or 'first'} grasp "
+                         "is not one whose object is where it starts (drawer_put's object is)")
+    start_state = world.data.qpos.copy(), world.data.qvel.copy()
     set_stage(ep, index)
     a = stage_anchors(ep, index)
     yaw = a.yaw
     grasp, release = a.points(offsets)
+    if at_home:  # back to the start: the object lies where it did, the drawer is shut again
+        world.data.qpos[:], world.data.qvel[:] = start_state
+        world.forward()
     recorder = Recorder(ep, image_size=image_size)
     kin = recorder.kin
     q_home = world.arm_q()
-    start = start_pose(ep, kin.fk(q_home), index)
+    start = start_pose(ep, kin.fk(q_home), 0 if at_home else index)
     try:
-        if index:
+        if index and not at_home:
             try:  # where the last release left the arm; home if that is out of reach
                 q_home = kin.ik(start, q_home)
             except UnreachableError:
@@ -151,7 +161,8 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             "points": np.tile(np.stack([grasp, release]).astype(np.float32), (n, 1, 1)),
             "grasp_yaw": np.full(n, yaw, np.float32), "footprint_period": np.full(n, a.period, np.float32),
             "frame": np.tile(a.frame.astype(np.float32), (n, 1, 1)), "task": [task] * n, "stage": [stage] * n,
-            "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n}
+            "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n,
+            "at_home": np.full(n, bool(at_home))}
 
 
 def _carry_views(ep, recorder, seed: int, views: int, target: str, grasp, release, yaw: float, q_home) -> None:
@@ -176,7 +187,7 @@ def _carry_views(ep, recorder, seed: int, views: int, target: str, grasp, releas
 
 def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdout: Holdout = Holdout(),
              progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0,
-             task: str = TASK, stage: str = "") -> list[Path]:
+             task: str = TASK, stage: str = "", at_home: bool = False) -> list[Path]:
     """Render views of every seed's `task` scene (on the way to its grasp `stage`, datagen/views_stages.py) into
     shards of SHARD scenes under out_dir; returns the shards."""
     from tqdm import tqdm
@@ -188,13 +199,13 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
     key = label_key(task, stage)
     bar = tqdm(total=len(seeds), desc=f"views {key}", unit="scene", disable=not progress)
     for start in starts:
-        path = out / f"views_{key.replace('/', '-')}_{start:08d}.npz"
+        path = out / f"views_{key.replace('/', '-')}{'-home' if at_home else ''}_{start:08d}.npz"
         chunk = range(start, min(start + SHARD, seeds.stop))
         if not path.exists():
             parts = []
             for seed in chunk:
                 parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry, task=task,
-                                         stage=stage))
+                                         stage=stage, at_home=at_home))
                 bar.update(1)
             text = ("instruction", "task", "stage")
             merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in text}
@@ -252,6 +263,7 @@ def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
         task, key = _shard_task(p), _shard_key(p)
         p.setdefault("task", np.array([task] * n))
         p.setdefault("stage", np.array([""] * n))
+        p.setdefault("at_home", np.zeros(n, bool))  # shards from before at_home views: on the way to their stage
         p.setdefault("frame", np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)))
         if offsets is not None:
             if key not in offsets:

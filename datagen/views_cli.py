@@ -34,6 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--stage", default="", metavar="STAGE",
                    help="a long task's later grasp to render the way to: drawer_put's object (the drawer open) or "
                         "close (the object in the open drawer, the handle again); default the first grasp")
+    v.add_argument("--at-home", action="store_true",
+                   help="with --stage object: the scene as the episode starts (drawer shut, arm at home) with the "
+                        "object stage's labels, for an object locator (sudd pretrain --object-locator)")
     v.add_argument("--out", type=Path, required=True, help="views directory (created; resumed if present)")
     v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
     v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
@@ -55,7 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _views(args) -> int:
     from datagen.view_anchors import FAMILIES, check_carries
     from datagen.views import generate, measure_offsets
-    from datagen.views_stages import label_key
+    from datagen.views_stages import label_key, stage_index
     from sim.config import load_config
     from sim.tasks import Holdout
 
@@ -71,10 +74,14 @@ def _views(args) -> int:
         except ValueError as exc:
             raise ValueError(f"--carry-views: {exc}; leave it out") from None
     key = label_key(args.task, args.stage)
+    if args.at_home and stage_index(args.task, args.stage) != 1:
+        raise ValueError(f"--at-home labels a later grasp from the start: give --task drawer_put --stage object "
+                         f"(got --task {args.task} --stage {args.stage or '(first)'})")
     offsets = measure_offsets(args.offsets_from, key)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
-                      holdout, carry=args.carry_views, task=args.task, stage=args.stage)
-    summary = {"out": str(args.out), "task": args.task, "stage": key, "shards": len(shards), "scenes": args.scenes,
+                      holdout, carry=args.carry_views, task=args.task, stage=args.stage, at_home=args.at_home)
+    summary = {"out": str(args.out), "task": args.task, "stage": key, "at_home": args.at_home, "shards": len(shards),
+               "scenes": args.scenes,
                "views_per_scene": args.views,
                "carry_views_per_scene": args.carry_views,
                "offsets_m": {k: [round(float(x), 4) for x in offsets[k]] for k in ("grasp", "release")},

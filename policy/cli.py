@@ -93,6 +93,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "train a goal locator for the goal query instead (policy/goal_locator.py): a copy of --init-from's encoders "
         "and head taught, on the views at home, where the role-swapped command's object is, validated by the query's "
         "error on --data's episodes; export it with `sudd export BUNDLE --goal-query stack ... --goal-locator RUN`"))
+    pre.add_argument("--object-locator", action="store_true", help=(
+        "train an object locator instead: the same copy taught where drawer_put's object is and where in the drawer "
+        "it goes, from the start (views of `sudd views --task drawer_put --stage object --at-home`), validated on "
+        "--data's drawer_put episodes; try it with `sudd oracle-eval BUNDLE --task drawer_put --phases --points-from RUN`"))
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
@@ -140,6 +144,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     orc.add_argument("--offsets-data", type=Path, metavar="DIR",
                      help="dataset to measure the grasp and release offsets on (default the run's own; a bundle "
                           "trained elsewhere needs one of this family)")
+    orc.add_argument("--points-from", type=Path, metavar="RUN",
+                     help="drawer_put: the object and drop an object locator run (sudd pretrain --object-locator) "
+                          "finds at the start, in place of the truth")
     orc.add_argument("--bias-cm", type=float, default=0.0, help="move the true grasp point this far sideways")
     orc.add_argument("--true-points", choices=("both", "grasp", "release"), default="both",
                      help="which of the head's points the truth replaces (default both; with one, the other stays "
@@ -253,10 +260,20 @@ def _train(args) -> int:
 def _pretrain(args) -> int:
     from policy.pretrain import pretrain
 
+    if args.goal_locator and args.object_locator:
+        raise ValueError("--goal-locator and --object-locator each train one locator: give one of them")
     summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set),
                        init_from=args.init_from, head_only=args.head_only, episode_share=args.episode_share,
-                       episode_tasks=tuple(args.episode_task), goal_locator=args.goal_locator)
+                       episode_tasks=tuple(args.episode_task), goal_locator=args.goal_locator or args.object_locator,
+                       locator_question="object" if args.object_locator else "goal")
     val = summary["validation"] or {}
+    if args.object_locator:
+        b = summary["goal_query_before"]
+        print(json.dumps(summary, indent=2) if args.json else
+              f"object locator {summary['run_dir']} ({summary['views']} home views), on {args.data}'s drawer_put "
+              f"episodes: the object {b['object_grasp_cm_median']:.2f} -> {val['object_grasp_cm_median']:.2f} cm off, "
+              f"the drop {b['object_release_cm_median']:.2f} -> {val['object_release_cm_median']:.2f} cm (medians)")
+        return 0
     if args.goal_locator:
         b = summary["goal_query_before"]
         print(json.dumps(summary, indent=2) if args.json else
@@ -303,7 +320,8 @@ def _oracle_eval(args) -> int:
         raise SystemExit(f"--latency-ms must be in [0, 1000], got {args.latency_ms}")
     rows = oracle_eval(args.run, args.out, args.episodes, args.seed_offset, args.bias_cm, args.inference_steps,
                        args.dr, args.workers, true_points=args.true_points, latency_ms=args.latency_ms,
-                       task=args.task, phases=args.phases, offsets_data=args.offsets_data)
+                       task=args.task, phases=args.phases, offsets_data=args.offsets_data,
+                       points_from=args.points_from)
     print(markdown_table(rows))
     print(f"per episode {args.out / 'results.jsonl'}; compare with `sudd eval` on the same seeds")
     return 0

@@ -32,20 +32,49 @@ from policy.goal_query import role_swap
 GRAPH = "goal_locator"
 FILE = "goal_locator.onnx"
 GOAL_COLUMNS = slice(0, 3)  # the head's grasp slot: the one point the goal query reads
+# The question a locator is taught, and the head's columns its loss is on: "goal", the goal query's (the object a
+# command puts something on, asked as the one to grasp: the grasp slot); "object", a long task's later grasp asked
+# at the start (drawer_put: where the object is and where in the drawer it goes: the grasp and release slots).
+QUESTIONS = {"goal": GOAL_COLUMNS, "object": slice(0, 6)}
 
 
-def locator_rows(v: dict) -> dict:
-    """Rendered views (datagen.views.load) relabelled for the locator: each scene's first view (the arm at home,
-    where the query is asked), of the commands that name two objects, with the role-swapped command and the
-    release point as the grasp label. A ValueError when no view has such a command."""
+def check_question(question: str) -> slice:
+    """The loss columns of a locator `question` (QUESTIONS); a ValueError names the choices."""
+    if question not in QUESTIONS:
+        raise ValueError(f"locator question {question!r}: expected one of {', '.join(QUESTIONS)}")
+    return QUESTIONS[question]
+
+
+def _first_views(v: dict, home_stage: bool) -> np.ndarray:
+    """Each scene's first view: of its first stage (home_stage False; a later stage's views set out from where the
+    last release left the arm), or of a later stage rendered at home (`sudd views --at-home`)."""
     n = len(v["instruction"])
     first = np.zeros(n, bool)
+    at_home = v.get("at_home", np.zeros(n, bool))
     scene = list(zip(v["seed"].tolist(), [str(t) for t in v["task"]], [str(s) for s in v["stage"]]))
     seen: set = set()
     for i, key in enumerate(scene):
-        if key not in seen and not key[2]:  # a long task's later stage starts elsewhere than home
+        wanted = bool(key[2]) and bool(at_home[i]) if home_stage else not key[2]
+        if key not in seen and wanted:
             seen.add(key)
             first[i] = True
+    return first
+
+
+def locator_rows(v: dict, question: str = "goal") -> dict:
+    """Rendered views (datagen.views.load) relabelled for the locator's `question` (QUESTIONS): each scene's first
+    view (the arm at home, where the question is asked). "goal": of the commands that name two objects, with the
+    role-swapped command and the release point as the grasp label. "object": a later stage's views rendered at
+    home, the command and the labels as they are. A ValueError when no view is of the kind."""
+    check_question(question)
+    n = len(v["instruction"])
+    if question == "object":
+        keep = np.flatnonzero(_first_views(v, home_stage=True))
+        if not len(keep):
+            raise ValueError("no home view of a later stage: the object locator learns drawer_put's object from the "
+                             "start; render them with `sudd views --task drawer_put --stage object --at-home`")
+        return {k: (val[keep] if isinstance(val, np.ndarray) and len(val) == n else val) for k, val in v.items()}
+    first = _first_views(v, home_stage=False)
     swapped = [role_swap(str(t)) for t in v["instruction"]]
     keep = np.flatnonzero(first & np.array([s is not None for s in swapped], bool))
     if not len(keep):
@@ -87,9 +116,9 @@ def graph_spec(cfg) -> dict:
             "outputs": [io("aux_points", ["B", cfg.aux_dim], "float32")]}
 
 
-def load_locator(run_dir: str | Path, policy_cfg):
-    """(model with EMA weights, its views record) of a `sudd pretrain --goal-locator` run, checked to read the
-    policy's inputs."""
+def load_locator(run_dir: str | Path, policy_cfg, question: str = "goal"):
+    """(model with EMA weights, its views record) of a `sudd pretrain --goal-locator` run (or `--object-locator`,
+    `question` "object"), checked to read the policy's inputs and to have been taught that question."""
     from policy.train import load_run_model
 
     path = Path(run_dir) / "dataset.json"
@@ -100,9 +129,14 @@ def load_locator(run_dir: str | Path, policy_cfg):
     if not pre.get("goal_locator"):
         raise ValueError(f"--goal-locator {run_dir}: not a goal locator run (its dataset.json's pretrain has no "
                          "goal_locator: true); train one with `sudd pretrain --goal-locator --init-from BUNDLE`")
+    taught = pre.get("locator_question", "goal")  # runs from before the object question asked the goal's
+    if taught != question:
+        raise ValueError(f"{run_dir}: a locator taught the {taught} question, asked here the {question} question; "
+                         f"give a `sudd pretrain --{question}-locator` run")
     locator, cfg, _ = load_run_model(run_dir)
     check_compatible(policy_cfg, cfg)
-    return locator, {k: pre[k] for k in ("goal_locator", "views", "view_count", "scenes") if k in pre}
+    return locator, {k: pre[k] for k in ("goal_locator", "locator_question", "views", "view_count", "scenes")
+                     if k in pre}
 
 
 def check_compatible(policy_cfg, locator_cfg) -> None:

@@ -8,6 +8,9 @@ its grasp points (base frame) is compared with the recorded release point: the o
 episode and scored on the rest, then the other way), against the head's own release point on the same frames,
 so the manifest says what the query buys on episodes the offset was not fitted on. Measure on data the policy
 did not train on: a head grounds the scenes it trained on better than new ones.
+
+`measure_object` scores an object locator (policy/goal_locator.py, the "object" question) the same way: its grasp
+and release points on the first frames of a long task's episodes against the recorded later cycle's.
 """
 
 from __future__ import annotations
@@ -82,3 +85,46 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
                          "release_cm_p75": round(float(np.percentile(errors, 75)) * 100, 2),
                          "head_release_cm_median": round(float(np.median(head)) * 100, 2),
                          "head_release_cm_p75": round(float(np.percentile(head, 75)) * 100, 2)}}
+
+
+@torch.no_grad()
+def measure_object(locator, normalizer, data, family: str = "drawer_put", stage: int = 1, ticks: int = 3,
+                   embedder=None) -> dict:
+    """How far an object locator (policy/goal_locator.py, question "object") is off a long task's later grasp
+    cycle, asked the command on each verified `family` episode's first `ticks` frames (the arm at home) as the
+    query would be: the median of its grasp points (base frame) against the recorded grasp of cycle `stage` (the
+    object), of its release points against that cycle's release (the drop in the drawer), on the episodes that made
+    exactly one cycle per stage (a retry's extra one would shift the count). A ValueError when there is none."""
+    from policy.data import PolicyDataset, finish_images
+    from datagen.views_stages import stages
+
+    cfg = locator.cfg
+    if embedder is None:
+        from policy.text import default_embedder
+
+        embedder = default_embedder()
+    ds = PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
+                       max_cache_bytes=0)
+    first: dict[int, list[int]] = {}
+    for i, (k, s) in enumerate(ds.index):
+        if ds.tasks[k] == family and 0 <= s + cfg.obs_horizon - 1 < ticks:
+            first.setdefault(k, []).append(i)
+    grasp_err, release_err = [], []
+    for k, rows in sorted(first.items()):
+        cycles, at = np.unique(ds.cycle[k], axis=0, return_index=True)
+        if len(cycles) != len(stages(family)):
+            continue
+        truth = ds.aux_points[k][sorted(at)[stage]]  # (2, 3): that cycle's grasp and release, base frame [m]
+        batch = finish_images(default_collate([ds[i] for i in rows]))
+        points = locator.eval().aux_points(locator.obs_encoder(batch["images"], batch["proprio"], batch["text"]))
+        poses = np.stack([ds.tcp_pose[k][ds._newest_step(i)[1]][:9] for i in rows])
+        grasp = points_from_tcp(points[:, None, :3].numpy() * AUX_TCP_SCALE, poses)[:, 0]
+        release = points[:, 3:6].numpy() * AUX_TCP_SCALE
+        grasp_err.append(np.linalg.norm(np.median(grasp, axis=0) - truth[0]))
+        release_err.append(np.linalg.norm(np.median(release, axis=0) - truth[1]))
+    if not grasp_err:
+        raise ValueError(f"{data}: no verified {family} episode with one grasp cycle per stage to measure the object "
+                         f"locator on; record some (sudd datagen --task {family})")
+    cm = lambda e, q: round(float(np.percentile(e, q)) * 100, 2)  # noqa: E731
+    return {"episodes": len(grasp_err), "grasp_cm_median": cm(grasp_err, 50), "grasp_cm_p75": cm(grasp_err, 75),
+            "release_cm_median": cm(release_err, 50), "release_cm_p75": cm(release_err, 75)}

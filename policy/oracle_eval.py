@@ -80,6 +80,42 @@ class DrawerPutPoints(TruePoints):
         self.points = np.stack([grasp, drop_point(SimpleNamespace(world=world)) + R @ self.offsets["release"]])
 
 
+class LocatedPoints:
+    """drawer_put's middle grasp cycle's points as an object locator (policy/goal_locator.py, the "object" question)
+    finds them: asked the command on the episode's first `ticks` frames (the arm at home, the drawer shut), the
+    median of its answers (base frame) held for the rest, as the goal query does for stack. What a deployable
+    drawer_put would be given in place of the truth."""
+
+    def __init__(self, locator, command_embedding: np.ndarray, normalizer, ticks: int = 3):
+        self.locator, self.embedding, self.normalizer, self.ticks = locator.eval(), command_embedding, normalizer, ticks
+        self.answers: list[np.ndarray] = []
+        self.points: np.ndarray | None = None
+
+    def __call__(self, world, inst) -> None:  # an observer with nothing to follow: the answer is held
+        pass
+
+    def ask(self, images: dict, proprio: np.ndarray) -> None:
+        """Ask the locator about this observation while fewer than `ticks` answers are in."""
+        if len(self.answers) >= self.ticks:
+            return
+        import torch
+
+        from policy.action_frame import points_from_tcp
+        from policy.config import AUX_TCP_SCALE
+        from policy.model import prepare_images
+
+        cfg = self.locator.cfg
+        with torch.no_grad():
+            imgs = {c: prepare_images(torch.from_numpy(np.asarray(images[c]))[None], cfg.crop_size)
+                    for c in cfg.cameras}
+            p = torch.from_numpy(self.normalizer.normalize_proprio(proprio).astype(np.float32))[None]
+            text = torch.from_numpy(np.asarray(self.embedding, np.float32))[None]
+            pts = self.locator.aux_points(self.locator.obs_encoder(imgs, p, text))[0].numpy()
+        grasp = points_from_tcp(pts[None, :3] * AUX_TCP_SCALE, np.asarray(proprio)[-1, :9])[0]
+        self.answers.append(np.stack([grasp, pts[3:6] * AUX_TCP_SCALE]))
+        self.points = np.median(np.stack(self.answers), axis=0)
+
+
 class OracleAuxPolicy:
     """What `runtime.evaluate.run_policy_episode` needs of a bundle, from a torch run, with true aux points."""
 
@@ -123,6 +159,8 @@ class OracleAuxPolicy:
             p = torch.from_numpy(with_stage(self.normalizer.normalize_proprio(proprio), stage, cfg.stage_bins))[None]
             cond = self.model.encode(imgs, p, torch.from_numpy(np.asarray(text_embedding, np.float32))[None])
         start = cond.shape[1] - cfg.aux_dim
+        if isinstance(self.truth, LocatedPoints):
+            self.truth.ask(images, proprio)
         true = relative_to_tcp(self.truth.points, np.asarray(proprio)[-1])
         for k in self.replaced if self.only_stage in (None, stage) else ():
             cond[0, start + 3 * k:start + 3 * k + 3] = true[3 * k:3 * k + 3]
@@ -164,7 +202,12 @@ def _init(settings: dict) -> None:
     # the gripper levels the controller snaps commands to, as `sudd eval` takes them from a bundle: without the
     # half-open 0.5 a drawer's handle is met with open fingers
     policy.manifest["data"] = {"gripper_levels": settings["gripper_levels"]}
-    _WORKER.update(settings=settings, policy=policy)
+    locator = None
+    if settings.get("points_from"):
+        from policy.goal_locator import load_locator
+
+        locator = load_locator(settings["points_from"], model.cfg, "object")[0]
+    _WORKER.update(settings=settings, policy=policy, locator=locator)
 
 
 def _job(seed: int) -> dict:
@@ -175,15 +218,22 @@ def _job(seed: int) -> dict:
 
     s, policy = _WORKER["settings"], _WORKER["policy"]
     offsets = {k: np.asarray(v) for k, v in s["offsets"].items()}
-    points = DrawerPutPoints if s["task"] == "drawer_put" else TruePoints
-    policy.truth = points(offsets, s["bias_cm"], seed, s["task"])
+    holdout = Holdout(colors=tuple(s["holdout"]["colors"]), shapes=tuple(s["holdout"]["shapes"]))
+    if _WORKER["locator"] is not None:  # the command's object and drop as the locator finds them
+        from sim.build import build_episode
+
+        command = build_episode(s["task"], seed, s["dr"], "fast", holdout=holdout).instruction
+        policy.truth = LocatedPoints(_WORKER["locator"], policy.embed(command), policy.normalizer)
+    else:
+        points = DrawerPutPoints if s["task"] == "drawer_put" else TruePoints
+        policy.truth = points(offsets, s["bias_cm"], seed, s["task"])
     phases = phases_for(s["task"], Pace(s["pace"])) if s["phases"] else None
     t0 = time.perf_counter()
     out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
                              time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"], phases=phases,
-                             holdout=Holdout(colors=tuple(s["holdout"]["colors"]),
-                                             shapes=tuple(s["holdout"]["shapes"])))
+                             holdout=holdout)
     suite = "oracle" if s["true_points"] == "both" else f"oracle-{s['true_points']}"
+    suite = "located" if _WORKER["locator"] is not None else suite
     suite += "" if s["bias_cm"] == 0 else f"+{s['bias_cm']:g}cm"
     suite += "+phases" if s["phases"] else ""
     return {"suite": suite, "who": "policy", **out.record(), "wall_s": round(time.perf_counter() - t0, 2)}
@@ -193,7 +243,7 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
                 bias_cm: float = 0.0, inference_steps: int | None = None, dr: str = "heavy", workers: int = 1,
                 progress: bool = True, time_limit_factor: float = 1.0, true_points: str = "both",
                 latency_ms: float | None = None, task: str = "pick_place", phases: bool = False,
-                offsets_data: str | Path | None = None) -> list[dict]:
+                offsets_data: str | Path | None = None, points_from: str | Path | None = None) -> list[dict]:
     """Run the episodes, write results.jsonl and results.md to `out_dir`, return the summary rows.
     true_points: which aux points the truth replaces (TRUE_POINTS); latency_ms: a fixed simulated inference lag
     (as `sudd eval --latency-ms`: a rerun is then the same episodes) instead of each inference's measured one.
@@ -201,8 +251,13 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
     drawer_put, whose points are replaced in its middle grasp cycle only (the object to the drawer; opening and
     shutting keep the head's). phases: run the command as the skills of runtime.phases at the bundle's pace (a
     run has no pace table: 1). run_dir: a training run or a bundle (rebuilt in torch, policy.bundle_import);
-    offsets_data: the dataset the grasp and release offsets are measured on (default the run's own)."""
+    offsets_data: the dataset the grasp and release offsets are measured on (default the run's own).
+    points_from: drawer_put only: an object locator run (`sudd pretrain --object-locator`) whose answers at the
+    start (LocatedPoints) replace the truth: what the policy does with the points a deployable query gives."""
     replaced_points(true_points)  # a bad name fails here, before any worker starts
+    if points_from is not None and (task != "drawer_put" or true_points != "both" or bias_cm):
+        raise ValueError("--points-from gives drawer_put's object and drop as an object locator finds them: use it "
+                         "with --task drawer_put, without --true-points or --bias-cm")
     from datagen.view_anchors import CARRIES
     from datagen.views import measure_offsets
     from policy.bundle_import import is_bundle
@@ -228,6 +283,7 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
                 "latency_s": None if latency_ms is None else latency_ms / 1000.0,
                 "holdout": dataset.get("holdout") or {"colors": [], "shapes": []},
                 "gripper_levels": dataset.get("gripper_levels"),
+                "points_from": None if points_from is None else str(points_from),
                 "offsets": {k: np.asarray(offsets[k]).tolist() for k in ("grasp", "release")}}
     seeds = list(range(seed_offset, seed_offset + episodes))
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -57,6 +57,12 @@ def plot_metrics(metrics_path: str | Path, out_png: str | Path) -> Path | None:
     if goal:
         panels.append(("goal query: release point error on unseen episodes [cm]",
                        [line("median", goal, "goal_cm_median"), line("p75", goal, "goal_cm_p75")], False))
+    found = [r for r in rows if "object_grasp_cm_median" in r]  # an object locator's run
+    if found:
+        panels.append(("object locator: error on unseen episodes' first frames [cm]",
+                       [line("object (grasp), median", found, "object_grasp_cm_median"),
+                        line("drop (release), median", found, "object_release_cm_median"),
+                        line("object (grasp), p75", found, "object_grasp_cm_p75")], False))
     _draw(panels, out_png)
     return Path(out_png)
 

@@ -48,7 +48,7 @@ from datagen.views import measure_offsets
 from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, finish_images, jitter_factors
-from policy.goal_locator import GOAL_COLUMNS, locator_rows
+from policy.goal_locator import check_question, locator_rows
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
 from policy.instruction import embed_instructions
 from policy.model import DiffusionPolicy, count_params
@@ -64,10 +64,10 @@ class Views:
     """Rendered views as training batches (everything in memory, uint8 images)."""
 
     def __init__(self, views_dir: str | Path | list, cfg: PolicyConfig, normalizer, embedder,
-                 offsets: dict | None = None, goal_locator: bool = False):
+                 offsets: dict | None = None, goal_locator: bool = False, question: str = "goal"):
         v = load_views(views_dir, offsets)
-        if goal_locator:  # the home views, asked the swapped command (policy/goal_locator.py)
-            v = locator_rows(v)
+        if goal_locator:  # the home views, asked the locator's question (policy/goal_locator.py)
+            v = locator_rows(v, question)
         self.families = sorted(set(v["task"].tolist()))
         if v["scene"].shape[1:3] != tuple(cfg.image_size):
             raise ValueError(f"{views_dir}: views are {v['scene'].shape[1:3]} pixels, the config expects "
@@ -148,7 +148,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
              progress: bool = True, embedder=None, init_from: str | Path | None = None,
              head_only: bool = False, episode_share: float = 0.0, episode_tasks: tuple[str, ...] = (),
-             goal_locator: bool = False) -> dict:
+             goal_locator: bool = False, locator_question: str = "goal") -> dict:
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
@@ -162,6 +162,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     goal_locator: train a goal locator (policy/goal_locator.py) instead: the views at home, the swapped command, the
     release point as the grasp label and the loss on that point alone; validated by the goal query's error on
     --data's episodes (which the views never showed), before and during training, in place of the head's.
+    locator_question: with goal_locator, "object" teaches the object question instead (policy/goal_locator.py:
+    drawer_put's object and drop from the start, on `sudd views --at-home` views; the loss on the grasp and release
+    points, validated by policy.goal_query_measure.measure_object on --data's drawer_put episodes).
     """
     from tqdm import tqdm
 
@@ -181,6 +184,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     if episode_tasks and not episode_share:
         raise ValueError(f"episode_tasks {list(episode_tasks)} chooses the recorded frames of episode_share, which is 0: "
                          "give a share too (sudd pretrain --episode-share 0.25 --episode-task ...)")
+    cols = check_question(locator_question) if goal_locator else slice(None)
     if goal_locator and (init_from is None or episode_share):
         raise ValueError("a goal locator is a copy of a policy's encoders and head taught the goal query on home views: "
                          "give --init-from the bundle it goes with, and no --episode-share (recorded frames carry "
@@ -208,7 +212,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                             uint8_images=True, split="val", max_cache_bytes=0)
         validator = Validator(val, fit, seed=cfg.seed, chunks=False)
     offsets = {task: measure_offsets(data_dir, task) for task in view_tasks(views_dir)}
-    views = Views(views_dir, cfg, fit.normalizer, embedder, offsets, goal_locator)
+    views = Views(views_dir, cfg, fit.normalizer, embedder, offsets, goal_locator, locator_question)
     episodes = None
     if episode_share > 0:
         episodes = EpisodeFrames(PolicyDataset(data_dir, cfg, train=True, normalizer=fit.normalizer, embedder=embedder,
@@ -237,7 +241,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     info = dict(fit.info(), pretrain={"views": _names(views_dir), "view_count": len(views), "scenes": views.scenes,
                                       "offsets_m": offsets_m, "head_only": head_only,
                                       "episode_share": episode_share, "episode_tasks": list(episode_tasks),
-                                      "goal_locator": goal_locator})
+                                      "goal_locator": goal_locator,
+                                      **({"locator_question": locator_question} if goal_locator else {})})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
@@ -246,14 +251,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     rng = np.random.default_rng(cfg.seed)
     goal = None
     if goal_locator:
-        from policy.goal_query_measure import measure
-
-        goal = lambda m: measure(m.eval(), fit.normalizer, data_dir, views.families, embedder=embedder)["measured"]  # noqa: E731
-        before = goal(model)
+        goal = _locator_check(locator_question, fit.normalizer, data_dir, views.families, embedder)
         with open(metrics, "a") as f:
-            f.write(json.dumps({"step": 0, "goal_cm_median": before["release_cm_median"],
-                                "goal_cm_p75": before["release_cm_p75"]}) + "\n")
-    cols = GOAL_COLUMNS if goal_locator else slice(None)
+            f.write(json.dumps({"step": 0, **goal(model)}) + "\n")
     model.train()
     acc, n_acc, t_log = 0.0, 0, time.perf_counter()
     for step in tqdm(range(1, steps + 1), desc="pretrain", unit="step", disable=not progress):
@@ -278,12 +278,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
             if validator is not None and (step % cfg.val_every == 0 or step == steps):
                 f.write(json.dumps({"step": step, **validator(ema.model, torch.device("cpu"))}) + "\n")
             if goal is not None and (step % cfg.val_every == 0 or step == steps):
-                q = goal(ema.model)
-                f.write(json.dumps({"step": step, "goal_cm_median": q["release_cm_median"],
-                                    "goal_cm_p75": q["release_cm_p75"]}) + "\n")
+                f.write(json.dumps({"step": step, **goal(ema.model)}) + "\n")
     checkpoint = save_checkpoint(run_dir, steps, steps, model, ema, opt, sched, cfg)
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
-    checks = [r for r in rows if "val_loss" in r or "goal_cm_median" in r]
+    checks = [r for r in rows if "val_loss" in r or "goal_cm_median" in r or "object_grasp_cm_median" in r]
     losses = [r["loss"] for r in rows if "loss" in r]
     summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"],
                "views": len(views), "scenes": views.scenes,
@@ -293,3 +291,18 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                "plot": str(plot_metrics(metrics, run_dir / "metrics.png"))}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _locator_check(question: str, normalizer, data_dir, families: list[str], embedder):
+    """model -> the validation row of a locator of `question`: the goal query's error on --data's episodes
+    (goal_cm_*), or the object locator's grasp and release errors on its drawer_put episodes (object_*_cm_*)."""
+    from policy.goal_query_measure import measure, measure_object
+
+    if question == "goal":
+        def check(m) -> dict:
+            q = measure(m.eval(), normalizer, data_dir, families, embedder=embedder)["measured"]
+            return {"goal_cm_median": q["release_cm_median"], "goal_cm_p75": q["release_cm_p75"]}
+        return check
+    family = families[0].partition("/")[0]
+    return lambda m: {f"object_{k}": v for k, v in measure_object(m.eval(), normalizer, data_dir, family,
+                                                                  embedder=embedder).items() if k != "episodes"}

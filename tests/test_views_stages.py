@@ -53,6 +53,20 @@ def test_the_object_stage_opens_the_drawer_and_labels_the_object_and_the_drawer_
     assert v["footprint_period"][0] == pytest.approx(period) and v["stage"] == ["object"] * 4
 
 
+def test_at_home_object_views_show_the_start_with_the_object_stages_labels():
+    off = {"grasp": np.array([0.0, 0.0, 0.007]), "release": np.array([0.0, 0.0, 0.12])}
+    later = scene_views(SEED, 2, off, image_size=SIZE, task="drawer_put", stage="object")
+    home = scene_views(SEED, 2, off, image_size=SIZE, task="drawer_put", stage="object", at_home=True)
+    first = scene_views(SEED, 2, off, image_size=SIZE, task="drawer_put")  # the start, the handle's labels
+    np.testing.assert_allclose(home["points"], later["points"], atol=1e-6)  # where the object and the drop are
+    assert home["at_home"].all() and not later["at_home"].any() and home["stage"] == ["object"] * 2
+    np.testing.assert_allclose(home["proprio"][0], first["proprio"][0], atol=1e-6)  # the arm at home
+    assert np.array_equal(home["scene"][0], first["scene"][0])  # and the drawer shut: the start's very image
+    assert not np.array_equal(home["scene"][0], later["scene"][0])
+    with pytest.raises(ValueError, match="at_home views label a later grasp"):
+        scene_views(SEED, 1, off, image_size=SIZE, task="drawer_put", stage="close", at_home=True)
+
+
 def test_the_close_stage_puts_the_object_in_the_open_drawer_and_labels_the_handle_to_push_shut():
     v = scene_views(SEED, 2, ZERO, image_size=SIZE, task="drawer_put", stage="close")
     ep = build_episode("drawer_put", SEED, "heavy", "fast")

@@ -1,0 +1,179 @@
+"""The object locator (policy/goal_locator.py, the "object" question): drawer_put's object and where in the drawer
+it goes, taught from the start on at-home views of the object stage, scored on recorded episodes' first frames
+against their middle grasp cycle (policy.goal_query_measure.measure_object), and asked in `sudd oracle-eval
+--points-from` (policy.oracle_eval.LocatedPoints) in place of the truth."""
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from datagen.store import ShardWriter
+from datagen.workers import synthetic_episode
+from policy.action_frame import points_from_tcp
+from policy.config import AUX_TCP_SCALE
+from policy.export import export
+from policy.goal_locator import load_locator, locator_rows
+from policy.testing import SHIPPED_LIKE, TINY, hash_embedder, smooth_episode
+from policy.train import load_run_model
+from runtime.bench_runtime import test_cache_dir as cache_dir
+
+CACHE = cache_dir()
+CLOSED = ((3, 8), (12, 17), (21, 26))  # drawer_put's three grasp cycles: the handle, the object, the handle again
+COMMAND = "put the red block in the drawer"
+
+
+def _drawer_put_data(root, episodes: int = 4):
+    """Smooth synthetic drawer_put episodes (all successful) that close the gripper three times."""
+    with ShardWriter(root, "w0") as w:
+        for seed in range(episodes):
+            ep = synthetic_episode("drawer_put", seed, steps=30)
+            smooth_episode(ep, seed)
+            grip = np.zeros(len(ep.action), np.float32)
+            for a, b in CLOSED:
+                grip[a:b] = 1.0
+            ep.action[:, -1], ep.proprio[:, 9] = grip, np.roll(grip, 1)
+            ep.meta.update(success=True, instruction=COMMAND, label={"success": True, "source": "synthetic"})
+            w.append(ep)
+    return root
+
+
+def test_object_rows_keep_each_scenes_first_at_home_view_of_a_later_stage_as_labelled():
+    n = 6
+    v = {"seed": np.array([1, 1, 2, 2, 3, 3]), "task": np.array(["drawer_put"] * n),
+         "stage": np.array(["object", "object", "object", "object", "", ""]),
+         "at_home": np.array([True, True, False, False, False, False]),
+         "instruction": np.array([COMMAND] * n), "points": np.arange(n * 6, dtype=np.float32).reshape(n, 2, 3)}
+    out = locator_rows(v, "object")
+    assert out["seed"].tolist() == [1] and out["instruction"].tolist() == [COMMAND]  # the command as it is
+    np.testing.assert_array_equal(out["points"], v["points"][:1])  # the object and the drop, not swapped
+    with pytest.raises(ValueError, match="--at-home"):
+        locator_rows({**v, "at_home": np.zeros(n, bool)}, "object")
+    with pytest.raises(ValueError, match="expected one of goal, object"):
+        locator_rows(v, "lid")
+
+
+def test_a_locator_is_asked_only_the_question_it_was_taught(tmp_path):
+    (tmp_path / "dataset.json").write_text(json.dumps({"pretrain": {"goal_locator": True,
+                                                                    "locator_question": "object"}}))
+    with pytest.raises(ValueError, match="taught the object question, asked here the goal question"):
+        load_locator(tmp_path, SimpleNamespace(), "goal")
+
+
+@pytest.fixture(scope="module")
+def object_located(tmp_path_factory):
+    from datagen.views import generate
+    from policy.pretrain import pretrain
+    from policy.train import train
+
+    root = tmp_path_factory.mktemp("object_locator")
+    data = _drawer_put_data(root / "data")
+    train(data, dict(TINY), root / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
+          overrides=SHIPPED_LIKE)
+    export(root / "run", root / "plain", cache_dir=CACHE)
+    offsets = {"grasp": np.zeros(3), "release": np.array([0.0, 0.0, 0.1])}
+    size = tuple(TINY["image_size"])
+    generate(root / "views", range(700, 703), 2, offsets, progress=False, image_size=size, task="drawer_put",
+             stage="object", at_home=True)
+    generate(root / "views", range(700, 702), 2, offsets, progress=False, image_size=size, task="drawer_put",
+             stage="object")  # on the way from the handle: not the question's views
+    summary = pretrain(root / "views", data, root / "plain", root / "locator", 6,
+                       {"lr": 3e-3, "warmup_steps": 1, "val_every": 3, "log_every": 3}, threads=1, progress=False,
+                       embedder=hash_embedder, init_from=root / "plain", goal_locator=True,
+                       locator_question="object")
+    return root, data, summary
+
+
+def test_pretraining_an_object_locator_trains_the_grasp_and_release_points_on_at_home_views(object_located):
+    root, _, s = object_located
+    assert s["views"] == 3 and s["scenes"] == 3  # the first at-home view of each scene, nothing else
+    pre = json.loads((root / "locator" / "dataset.json").read_text())["pretrain"]
+    assert pre["goal_locator"] is True and pre["locator_question"] == "object"
+    rows = [json.loads(x) for x in (root / "locator" / "metrics.jsonl").read_text().splitlines()]
+    checks = [r for r in rows if "object_grasp_cm_median" in r]
+    assert [r["step"] for r in checks] == [0, 3, 6] and s["validation"]["step"] == 6
+    assert all(np.isfinite(r["object_release_cm_p75"]) for r in checks)
+    from policy.bundle_import import model_from_bundle
+
+    src, _, _ = model_from_bundle(root / "plain")
+    loc, _, _ = load_run_model(root / "locator", ema=False)
+    w0, w1 = src.aux_head[-1].weight, loc.aux_head[-1].weight
+    assert (w1[:6] - w0[:6]).abs().max() > 1e-4  # both points learnt
+    torch.testing.assert_close(w1[6:], w0[6:], rtol=1e-5, atol=1e-7)  # the grasp axis had no loss
+    with pytest.raises(ValueError, match="taught the object question"):
+        load_locator(root / "locator", loc.cfg, "goal")  # not a goal locator for `sudd export --goal-locator`
+
+
+class _Zero(torch.nn.Module):
+    """A locator stand-in whose points are all zero: the grasp at the TCP, the release at the base's origin."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.cfg = cfg
+
+    def obs_encoder(self, images, proprio, text):
+        return torch.zeros(len(proprio), 1)
+
+    def aux_points(self, features):
+        return torch.zeros(len(features), self.cfg.aux_dim)
+
+
+def test_the_object_measure_scores_the_first_frames_against_the_middle_cycle(object_located):
+    from policy.goal_query_measure import measure_object
+    from policy.normalize import Normalizer
+    from datagen.store import Dataset
+
+    root, data, _ = object_located
+    loc, _, _ = load_run_model(root / "locator")
+    norm = Normalizer.load(root / "locator" / "stats.npz")
+    got = measure_object(_Zero(loc.cfg), norm, data, ticks=1, embedder=hash_embedder)
+    store = Dataset(data)
+    grasp, release = [], []
+    for row in store.episodes():
+        w = store.window(row["index"], fields=("action", "proprio"))
+        (close, opened) = CLOSED[1][0], CLOSED[1][1]
+        grasp.append(np.linalg.norm(w["proprio"][0, :3] - w["action"][close, :3]))  # the TCP at the first frame
+        release.append(np.linalg.norm(w["action"][opened, :3]))
+    assert got["episodes"] == 4
+    assert got["grasp_cm_median"] == pytest.approx(100 * np.median(grasp), abs=0.01)
+    assert got["release_cm_median"] == pytest.approx(100 * np.median(release), abs=0.01)
+
+
+def test_located_points_hold_the_median_of_the_first_answers_and_replace_the_middle_cycle_only(object_located):
+    from policy.bundle_import import model_from_bundle
+    from policy.data import relative_to_tcp
+    from policy.oracle_eval import LocatedPoints, OracleAuxPolicy
+
+    root, _, _ = object_located
+    loc, _, _ = load_run_model(root / "locator")
+    model, norm, _ = model_from_bundle(root / "plain")
+    policy = OracleAuxPolicy(model, norm, hash_embedder, only_stage=1)
+    located = LocatedPoints(loc, policy.embed(COMMAND), norm, ticks=2)
+    policy.truth = located
+    rng = np.random.default_rng(0)
+    lo, hi = norm.proprio_min, norm.proprio_max
+    obs = [({c: rng.integers(0, 256, (1, 32, 32, 3), dtype=np.uint8) for c in model.cfg.cameras},
+            (lo + (hi - lo) * rng.random((1, len(lo)))).astype(np.float32)) for _ in range(3)]
+    emb = policy.embed("open the drawer")
+    conds = [policy.cond(images, proprio, emb, stage=0) for images, proprio in obs[:2]]
+    assert len(located.answers) == 2 and located.points.shape == (2, 3)
+    held = located.points.copy()
+    np.testing.assert_allclose(held, np.median(np.stack(located.answers), axis=0))
+    images, proprio = obs[2]
+    cond = policy.cond(images, proprio, emb, stage=1)  # the middle cycle: given the held answer
+    assert len(located.answers) == 2 and np.array_equal(located.points, held)  # asked no more
+    start = cond.shape[1] - model.cfg.aux_dim
+    np.testing.assert_allclose(cond[0, start:start + 6].numpy(), relative_to_tcp(held, proprio[-1]).numpy(),
+                               atol=1e-6)
+    grasp = points_from_tcp(cond[0, None, start:start + 3].numpy() * AUX_TCP_SCALE, proprio[-1, :9])[0]
+    np.testing.assert_allclose(grasp, held[0], atol=1e-5)
+    assert not np.allclose(conds[0][0, start:start + 6].numpy(), relative_to_tcp(held, obs[0][1][-1]).numpy())
+
+
+def test_oracle_eval_takes_located_points_for_drawer_put_only(tmp_path):
+    from policy.oracle_eval import oracle_eval
+
+    with pytest.raises(ValueError, match="--points-from gives drawer_put's object"):
+        oracle_eval(tmp_path, tmp_path / "out", 1, task="pick_place", points_from=tmp_path)
