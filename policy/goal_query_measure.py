@@ -30,7 +30,7 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
     """The manifest's goal_query table for `model` on `data` (module doc); a ValueError when no episode of
     `families` has a command with two objects. locator: a goal locator (policy/goal_locator.py) asked the swapped
     command in place of `model`'s head; the head's own release point is still `model`'s."""
-    from policy.data import PolicyDataset, finish_images
+    from policy.data import finish_images
 
     if not 1 <= int(ticks) <= MAX_TICKS:
         raise ValueError(f"goal query ticks {ticks}: expected an integer in [1, {MAX_TICKS}]")
@@ -39,16 +39,9 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
         raise ValueError("the goal query replaces the head's base-frame release point: it needs a policy with "
                          f"aux_condition, aux_release_frame 'base' and aux_target_frame 'tcp' (this one: "
                          f"{cfg.aux_condition}, {cfg.aux_release_frame!r}, {cfg.aux_target_frame!r})")
-    if embedder is None:
-        from policy.text import default_embedder
-
-        embedder = default_embedder()
-    ds = PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
-                       max_cache_bytes=0)
-    first: dict[int, list[int]] = {}
-    for i, (k, s) in enumerate(ds.index):
-        if ds.tasks[k] in families and role_swap(ds.instructions[k]) and 0 <= s + cfg.obs_horizon - 1 < ticks:
-            first.setdefault(k, []).append(i)
+    embedder = _embedder(embedder)
+    ds, first = _first_frames(data, cfg, normalizer, embedder, ticks,
+                              lambda ds, k: ds.tasks[k] in families and role_swap(ds.instructions[k]))
     if not first:
         raise ValueError(f"{data}: no verified episode of {', '.join(families)} whose command names two objects "
                          "(policy.goal_query.role_swap); measure on data of those families")
@@ -95,20 +88,11 @@ def measure_object(locator, normalizer, data, family: str = "drawer_put", stage:
     query would be: the median of its grasp points (base frame) against the recorded grasp of cycle `stage` (the
     object), of its release points against that cycle's release (the drop in the drawer), on the episodes that made
     exactly one cycle per stage (a retry's extra one would shift the count). A ValueError when there is none."""
-    from policy.data import PolicyDataset, finish_images
     from datagen.views_stages import stages
+    from policy.data import finish_images
 
-    cfg = locator.cfg
-    if embedder is None:
-        from policy.text import default_embedder
-
-        embedder = default_embedder()
-    ds = PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
-                       max_cache_bytes=0)
-    first: dict[int, list[int]] = {}
-    for i, (k, s) in enumerate(ds.index):
-        if ds.tasks[k] == family and 0 <= s + cfg.obs_horizon - 1 < ticks:
-            first.setdefault(k, []).append(i)
+    ds, first = _first_frames(data, locator.cfg, normalizer, _embedder(embedder), ticks,
+                              lambda ds, k: ds.tasks[k] == family)
     grasp_err, release_err = [], []
     for k, rows in sorted(first.items()):
         cycles, at = np.unique(ds.cycle[k], axis=0, return_index=True)
@@ -128,3 +112,26 @@ def measure_object(locator, normalizer, data, family: str = "drawer_put", stage:
     cm = lambda e, q: round(float(np.percentile(e, q)) * 100, 2)  # noqa: E731
     return {"episodes": len(grasp_err), "grasp_cm_median": cm(grasp_err, 50), "grasp_cm_p75": cm(grasp_err, 75),
             "release_cm_median": cm(release_err, 50), "release_cm_p75": cm(release_err, 75)}
+
+
+def _first_frames(data, cfg, normalizer, embedder, ticks: int, keep) -> tuple:
+    """(the dataset of `data` as `cfg` reads it, {episode: its samples whose newest frame is one of the first
+    `ticks`}) for the episodes `keep(ds, k)` accepts: the frames a query at the start is asked about."""
+    from policy.data import PolicyDataset
+
+    ds = PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
+                       max_cache_bytes=0)
+    first: dict[int, list[int]] = {}
+    for i, (k, s) in enumerate(ds.index):
+        if 0 <= s + cfg.obs_horizon - 1 < ticks and keep(ds, k):
+            first.setdefault(k, []).append(i)
+    return ds, first
+
+
+def _embedder(embedder):
+    """The sentence encoder to embed commands with: the one given, else the default (MiniLM)."""
+    if embedder is not None:
+        return embedder
+    from policy.text import default_embedder
+
+    return default_embedder()
