@@ -38,8 +38,9 @@ from policy.action_frame import from_tcp, orthonormalize_rot6d, points_from_tcp
 from policy.config import AUX_TCP_SCALE
 from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORTED_VERSIONS, TEXT_DIM,  # noqa: F401
                                     BundleError, check_manifest, expected_graphs, need, goal_clause_of,
-                                    instruction_dim, release_input_of)
+                                    grasp_input_of, instruction_dim, release_input_of)
 from policy.goal_query import goal_query_spec
+from policy.object_query import object_query_spec
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.pace import bundle_pace
@@ -166,6 +167,7 @@ class Bundle:
         self._cache: dict[str, np.ndarray] = {}
         self.goal_clause, self.instruction_dim = goal_clause_of(m), instruction_dim(m)
         self.release_input, self.goal_query = release_input_of(m), goal_query_spec(m)
+        self.grasp_input, self.object_query = grasp_input_of(m), object_query_spec(m)
         self._refs = np.zeros((0, self.instruction_dim), np.float32)
 
     def check_replan_every(self, n: int) -> None:
@@ -272,7 +274,7 @@ class Bundle:
 
     def act(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
             noise: np.ndarray | None = None, rng: np.random.Generator | None = None, trace: list | None = None,
-            stage: int = 0, release: np.ndarray | None = None) -> np.ndarray:
+            stage: int = 0, release: np.ndarray | None = None, grasp: np.ndarray | None = None) -> np.ndarray:
         """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
 
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
@@ -282,8 +284,9 @@ class Bundle:
         position request and measured position), read by a bundle with dims.stage_bins > 0, ignored by others.
         release: (4,) a base-frame release point in metres and a flag, 1 = in place of the head's (the goal query,
         policy/goal_query.py); only for a bundle with release_input.
+        grasp: (4,) likewise a grasp point (the object query, policy/object_query.py); only with grasp_input.
         """
-        cond = self._encode(images, proprio, text_embedding, stage, release)[0]
+        cond = self._encode(images, proprio, text_embedding, stage, release, grasp)[0]
         if noise is None:
             shape = (self.pred_horizon, self.action_dim)
             noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal(shape)
@@ -318,6 +321,16 @@ class Bundle:
         points = self.sessions["goal_locator"].run(None, feeds)[0][0]
         return points_from_tcp(points[None, :3] * AUX_TCP_SCALE, p[-1, :9])[0].astype(np.float32)
 
+    def object_points(self, images: dict[str, np.ndarray], proprio: np.ndarray,
+                      text_embedding: np.ndarray) -> np.ndarray:
+        """(2, 3) where the object locator (policy/object_query.py) finds the command's object and where it goes,
+        in the base frame [m]; only for a bundle with an object query."""
+        need(self.object_query is not None, f"{self.root} has no object locator (exported without --object-query)")
+        feeds, p = self._checked_feeds(images, proprio, text_embedding)
+        points = self.sessions["object_locator"].run(None, feeds)[0][0]
+        grasp = points_from_tcp(points[None, :3] * AUX_TCP_SCALE, p[-1, :9])[0]
+        return np.stack([grasp, points[3:6] * AUX_TCP_SCALE]).astype(np.float32)
+
     def _checked_feeds(self, images, proprio, text_embedding) -> tuple[dict, np.ndarray]:
         """The graphs' image and text feeds after checking them, and the checked proprio as float32."""
         To, (H, W) = self.obs_horizon, self.image_size
@@ -337,18 +350,19 @@ class Bundle:
         feeds["text_embedding"] = e[None]
         return feeds, p
 
-    def _encode(self, images, proprio, text_embedding, stage: int, release) -> list[np.ndarray]:
+    def _encode(self, images, proprio, text_embedding, stage: int, release, grasp=None) -> list[np.ndarray]:
         """The obs encoder's outputs (cond, and with release_input the head's aux_points) for checked inputs."""
         feeds, p = self._checked_feeds(images, proprio, text_embedding)
         normalized = p * self.stats["proprio_scale"] + self.stats["proprio_offset"]
         feeds["proprio"] = with_stage(normalized, stage, self.stage_bins)[None].astype(np.float32)
-        if self.release_input:
-            r = np.zeros(4, np.float32) if release is None else np.asarray(release, np.float32).reshape(-1)
-            if r.shape != (4,) or not np.all(np.isfinite(r)):
-                raise ValueError(f"release: expected finite (4,) = base-frame point [m] and flag, got {r.shape}")
-            feeds["release_point"] = r[None]
-        elif release is not None:
-            raise ValueError(f"{self.root} takes no release point (exported without release_input)")
+        for name, point, takes in (("release", release, self.release_input), ("grasp", grasp, self.grasp_input)):
+            if takes:
+                r = np.zeros(4, np.float32) if point is None else np.asarray(point, np.float32).reshape(-1)
+                if r.shape != (4,) or not np.all(np.isfinite(r)):
+                    raise ValueError(f"{name}: expected finite (4,) = base-frame point [m] and flag, got {r.shape}")
+                feeds[f"{name}_point"] = r[None]
+            elif point is not None:
+                raise ValueError(f"{self.root} takes no {name} point (exported without {name}_input)")
         return self.sessions["obs_encoder"].run(None, feeds)
 
     @property
@@ -361,5 +375,6 @@ class Bundle:
                 "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
                 "instructions": len(self.instructions), "stage_bins": self.stage_bins, "pace": self.pace.table,
                 "goal_query": list(self.goal_query.families) if self.goal_query else [],
+                "object_query": list(self.object_query.families) if self.object_query else [],
                 "data_hash": m.get("data", {}).get("content_hash"), "params": m.get("params"),
                 "bytes": {k: v["bytes"] for k, v in m["files"].items()}}

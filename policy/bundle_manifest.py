@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from policy.action_frame import FRAMES
 from policy.goal_query import goal_query_spec
+from policy.object_query import object_query_spec
 from policy.pace import bundle_pace
 
 FORMAT = "sudd-policy-bundle"
@@ -35,18 +36,26 @@ def release_input_of(m: dict) -> bool:
     return bool(m.get("release_input", False))
 
 
+def grasp_input_of(m: dict) -> bool:
+    """Whether obs_encoder.onnx also takes a grasp point (policy/object_query.py); bundles before it: no."""
+    return release_input_of(m) and bool(m.get("grasp_input", False))
+
+
 def expected_graphs(m: dict) -> dict:
     """The graph I/O that the manifest's own horizons, dims, cameras and image size imply."""
     To, Tp = m["horizons"]["obs"], m["horizons"]["pred"]
     Dp, Da, G = m["dims"]["proprio"] + m["dims"].get("stage_bins", 0), m["dims"]["action"], m["dims"]["cond"]
     H, W = m["image_size"]
     io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
-    release = (([io("release_point", ["B", 4], "float32")], [io("aux_points", ["B", m["dims"].get("aux")], "float32")])
-               if release_input_of(m) else ([], []))
+    release = (([io("release_point", ["B", 4], "float32")]
+                + ([io("grasp_point", ["B", 4], "float32")] if grasp_input_of(m) else []),
+                [io("aux_points", ["B", m["dims"].get("aux")], "float32")]) if release_input_of(m) else ([], []))
     images = [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in m["cameras"]]
     text = io("text_embedding", ["B", instruction_dim(m)], "float32")
     locator = ({"goal_locator": {"inputs": images + [text], "outputs": release[1]}}
                if release_input_of(m) and (m.get("goal_query") or {}).get("locator") is True else {})
+    if grasp_input_of(m) and m.get("object_query") is not None:  # its locator is the only way it is asked
+        locator["object_locator"] = {"inputs": images + [text], "outputs": release[1]}
     return {
         **locator,
         "obs_encoder": {"inputs": images + [io("proprio", ["B", To, Dp], "float32"), text] + release[0],
@@ -109,8 +118,10 @@ def check_manifest(m: dict) -> None:
         for kind in ("inputs", "outputs"):
             need(got.get(kind) == spec[kind], f"manifest graph {name} {kind} {got.get(kind)} do not follow from "
                   f"its horizons/dims/cameras (expected {spec[kind]})")
-    need(isinstance(m.get("release_input", False), bool), f"manifest release_input {m.get('release_input')!r}: "
-          "expected true or false")
+    for key in ("release_input", "grasp_input"):
+        need(isinstance(m.get(key, False), bool), f"manifest {key} {m.get(key)!r}: expected true or false")
+    need(release_input_of(m) or not m.get("grasp_input"), "manifest grasp_input needs release_input true (the obs "
+         "encoder takes the grasp point beside the release point)")
     if release_input_of(m):
         aux = m["dims"].get("aux")
         need(isinstance(aux, int) and aux >= 6, f"dims.aux {aux!r}: a bundle with release_input needs the aux "
@@ -118,6 +129,7 @@ def check_manifest(m: dict) -> None:
     try:
         bundle_pace(m)
         goal_query_spec(m)
+        object_query_spec(m)
     except ValueError as exc:
         raise BundleError(str(exc)) from None
     te = m.get("text_encoder", {})

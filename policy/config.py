@@ -111,6 +111,10 @@ class PolicyConfig:
         "export only: obs_encoder.onnx also takes `release_point` (B, 4: a base-frame point in metres and a 0/1 "
         "flag that puts it in place of the head's release point) and returns the head's `aux_points`, for the "
         "goal query (policy/goal_query.py); needs aux_condition and aux_release_frame base. Training ignores it")))
+    grasp_input: bool = field(default=False, metadata=spec(doc=(
+        "export only: obs_encoder.onnx also takes `grasp_point` (B, 4: a base-frame point in metres and a 0/1 flag "
+        "that puts it in place of the head's grasp point, turned relative to the gripper in the graph), for the "
+        "object query (policy/object_query.py); needs release_input. Training ignores it")))
     aux_grasp_axis: bool = field(default=False, metadata=spec(doc=(
         "the aux head also regresses the grasp's axis relative to the gripper's yaw, (cos 2d, sin 2d), (0, 0) "
         "for objects without one axis (policy/grasp_axis.py), so the encoder learns which way a bar lies; with "
@@ -201,6 +205,9 @@ class PolicyConfig:
             raise ConfigError(f"release_input needs aux_condition = true and aux_release_frame 'base' (got "
                               f"{self.aux_condition}, {self.aux_release_frame!r}): the point it takes replaces "
                               "the base-frame release point the head feeds the denoiser")
+        if self.grasp_input and not self.release_input:
+            raise ConfigError("grasp_input needs release_input = true: the object query gives the grasp and the "
+                              "release point together, and the obs encoder returns the head's points with them")
         if self.aux_grasp_axis and (self.aux_target_weight <= 0 or self.aux_target_frame != "tcp"):
             raise ConfigError(f"aux_grasp_axis needs aux_target_weight > 0 and aux_target_frame 'tcp' (got "
                               f"{self.aux_target_weight}, {self.aux_target_frame!r}): the axis is relative to the "

@@ -12,9 +12,11 @@ Bundle layout (format "sudd-policy-bundle", version 1):
                          recorded proprio, then dims.stage_bins one-hot grasp-cycle classes, policy.stage),
                          text_embedding (B,I) -> cond (B,G); the centre crop and /255 are inside the graph;
                          I = 384, or 768 with "instruction": {"goal_clause": true} (policy.instruction);
-                         with "release_input": true also release_point (B,4) in and aux_points (B,dims.aux) out
+                         with "release_input": true also release_point (B,4) in and aux_points (B,dims.aux) out,
+                         with "grasp_input": true also grasp_point (B,4) in (policy/object_query.py)
                          (the goal query, policy/goal_query.py; its table is the manifest's "goal_query")
     goal_locator.onnx    with a goal locator (policy/goal_locator.py): image_<camera>, text_embedding -> aux_points
+    object_locator.onnx  with an object query (policy/object_query.py): the same I/O, the object question's locator
     denoiser.onnx        noisy_actions (B,Tp,Da), timestep (B,) int64, cond (B,G) -> noise_pred (B,Tp,Da)
     text_encoder.onnx    input_ids, attention_mask (B,L) int64 -> embedding (B,384), weight-only int8 MiniLM
     tokenizer/           tokenizer.json (+ vocab and configs) for `tokenizers`
@@ -32,7 +34,8 @@ and what the rounding changes is recorded ("weights"). The text encoder and toke
 installed MiniLM package and are marked restorable (policy.text_export): a committed bundle leaves them
 out and `sudd export --restore-text-encoder` rebuilds them. Before anything is published, the bundle is
 loaded with `policy.bundle.Bundle` and compared with torch on random inputs (policy.parity: each graph,
-every denoising step and the final action chunk, manifest "parity").
+every denoising step and the final action chunk, manifest "parity"). The graphs are traced in
+policy/export_graphs.py.
 """
 
 from __future__ import annotations
@@ -42,159 +45,24 @@ import datetime
 import json
 import shutil
 import tempfile
-import warnings
 from pathlib import Path
 
 import torch
 
 from policy.bundle import sha256_file
-from policy.config import TEXT_DIM, PolicyConfig
+from policy.config import TEXT_DIM
+from policy.export_graphs import OPSET, _onnx_export, _rounded, _write_locator, graph_specs, write_policy_graphs  # noqa: F401
 from policy.goal_locator import GRAPH as LOCATOR_GRAPH
-from policy.goal_locator import LocatorGraph, load_locator
+from policy.goal_locator import OBJECT_GRAPH, load_locator, object_query_table
 from policy.goal_locator import graph_spec as locator_spec
-from policy.graph_frames import with_release
-from policy.model import DiffusionPolicy, count_params, film_dim, prepare_images
+from policy.model import DiffusionPolicy, count_params, film_dim
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
 from policy.warm_start import read_record
 
-FORMAT, FORMAT_VERSION, OPSET = "sudd-policy-bundle", 1, 17
-
-
-def _onnx_export(module, args, path: Path, inputs: list[str], outputs: list[str], dynamic: dict, opset: int):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the legacy (TorchScript) exporter's deprecation and tracer notes
-        # dynamo=False: the torch.export-based exporter needs onnxscript, which this project does not ship
-        torch.onnx.export(module, args, str(path), input_names=inputs, output_names=outputs, dynamic_axes=dynamic,
-                          opset_version=opset, dynamo=False, do_constant_folding=True)
-
-
-def _write_graph(module, args, path: Path, spec: dict, opset: int, fp16: bool) -> dict:
-    """Export one policy graph with the contract's I/O; returns its weight-storage figures."""
-    import onnx
-
-    from policy.fp16 import weight_only_fp16
-
-    names = {k: [i["name"] for i in spec[k]] for k in ("inputs", "outputs")}
-    _onnx_export(module, args, path, names["inputs"], names["outputs"],
-                 {n: {0: "B"} for n in names["inputs"] + names["outputs"]}, opset)
-    model = _declare_io(onnx.load(str(path)), spec)
-    info = {"dtype": "float32"}
-    if fp16:
-        model, converted = weight_only_fp16(model)
-        info = {"dtype": "float16", **converted}
-    onnx.save(model, str(path))
-    return info
-
-
-def _declare_io(model, spec: dict):
-    """Write the contract's shapes into the graph's declared inputs/outputs (the tracer leaves some output
-    dims symbolic, e.g. a Concat's width), so onnxruntime reports exactly what the manifest says."""
-    import onnx
-
-    for values, specs in ((model.graph.input, spec["inputs"]), (model.graph.output, spec["outputs"])):
-        by_name = {v.name: v for v in values}
-        for io in specs:
-            dims = by_name[io["name"]].type.tensor_type.shape.dim
-            for d, want in zip(dims, io["shape"]):
-                if isinstance(want, int):
-                    d.dim_value = want
-                else:
-                    d.dim_param = want
-    onnx.checker.check_model(model)
-    return model
-
-
-def _io(name: str, shape: list, dtype: str) -> dict:
-    return {"name": name, "shape": shape, "dtype": dtype}
-
-
-def graph_specs(cfg: PolicyConfig) -> dict:
-    """The I/O contract of every graph, as written to the manifest and checked by the loader."""
-    To, Tp, Da, Dp, G = cfg.obs_horizon, cfg.pred_horizon, cfg.action_dim, cfg.proprio_input_dim, film_dim(cfg)
-    H, W = cfg.image_size
-    release = ([_io("release_point", ["B", 4], "float32")], [_io("aux_points", ["B", cfg.aux_dim], "float32")]
-               ) if cfg.release_input else ([], [])
-    return {
-        "obs_encoder": {"file": "obs_encoder.onnx",
-                        "inputs": [_io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in cfg.cameras]
-                        + [_io("proprio", ["B", To, Dp], "float32"), _io("text_embedding", ["B", cfg.text_input_dim], "float32")]
-                        + release[0],
-                        "outputs": [_io("cond", ["B", G], "float32")] + release[1]},
-        "denoiser": {"file": "denoiser.onnx",
-                     "inputs": [_io("noisy_actions", ["B", Tp, Da], "float32"), _io("timestep", ["B"], "int64"),
-                                _io("cond", ["B", G], "float32")],
-                     "outputs": [_io("noise_pred", ["B", Tp, Da], "float32")]},
-        "text_encoder": {"file": "text_encoder.onnx",
-                         "inputs": [_io("input_ids", ["B", "L"], "int64"), _io("attention_mask", ["B", "L"], "int64")],
-                         "outputs": [_io("embedding", ["B", TEXT_DIM], "float32")]},
-    }
-
-
-class _ObsGraph(torch.nn.Module):
-    """obs_encoder.onnx: raw uint8 frames per camera, proprio, text -> cond = the denoiser's FiLM input
-    computed from the global cond once per chunk (ConditionalUnet1D.condition). With cfg.release_input also
-    release_point in (policy.graph_frames.with_release) and the head's aux_points out."""
-
-    def __init__(self, model: DiffusionPolicy):
-        super().__init__()
-        self.model, self.cameras, self.crop = model, model.cfg.cameras, model.cfg.crop_size
-
-    def forward(self, *args):
-        n = len(self.cameras)
-        images = {c: prepare_images(x, self.crop) for c, x in zip(self.cameras, args[:n])}
-        proprio, text = args[n], args[n + 1]
-        if not self.model.cfg.release_input:
-            return self.model.unet.condition(self.model.encode(images, proprio, text))
-        features = self.model.obs_encoder(images, proprio, text)
-        points = self.model.aux_points(features)
-        cond = self.model.cond_from(features, proprio, with_release(points, args[n + 2]))
-        return self.model.unet.condition(cond), points
-
-
-class _StepGraph(torch.nn.Module):
-    """denoiser.onnx: one denoising step from the precomputed FiLM cond (ConditionalUnet1D.denoise)."""
-
-    def __init__(self, model: DiffusionPolicy):
-        super().__init__()
-        self.unet = model.unet
-
-    def forward(self, noisy, timestep, cond):
-        return self.unet.denoise(noisy, timestep, cond)
-
-
-def write_policy_graphs(model: DiffusionPolicy, out_dir: Path, opset: int = OPSET, fp16: bool = True) -> dict:
-    """Trace obs_encoder.onnx and denoiser.onnx of `model` into out_dir; their weight-storage figures by graph.
-    The one place the policy graphs are traced: export, and policy.bundle_import's probes, which must get the
-    same nodes."""
-    cfg = model.cfg
-    specs = graph_specs(cfg)
-    g = torch.Generator().manual_seed(0)
-    H, W = cfg.image_size
-    ex_imgs = [torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
-               for _ in cfg.cameras]
-    ex_p, ex_t = torch.randn(1, cfg.obs_horizon, cfg.proprio_input_dim), torch.randn(1, cfg.text_input_dim)
-    so, sd = specs["obs_encoder"], specs["denoiser"]
-    ex = (*ex_imgs, ex_p, ex_t) + ((torch.tensor([[0.1, 0.4, 0.1, 1.0]]),) if cfg.release_input else ())
-    info = {"obs_encoder": _write_graph(_ObsGraph(model), ex, out_dir / so["file"], so, opset, fp16)}
-    with torch.no_grad():
-        cond = _ObsGraph(model)(*ex)
-        cond = cond[0] if cfg.release_input else cond
-    info["denoiser"] = _write_graph(_StepGraph(model), (torch.randn(1, cfg.pred_horizon, cfg.action_dim),
-                                                        torch.tensor([5]), cond), out_dir / sd["file"], sd, opset, fp16)
-    return info
-
-
-def _write_locator(locator: DiffusionPolicy, out_dir: Path, spec: dict, opset: int, fp16: bool) -> dict:
-    """Trace goal_locator.onnx (policy/goal_locator.py); its weight-storage figures."""
-    cfg = locator.cfg
-    g = torch.Generator().manual_seed(1)
-    H, W = cfg.image_size
-    ex = tuple(torch.randint(0, 256, (1, cfg.obs_horizon, H, W, 3), generator=g, dtype=torch.uint8)
-               for _ in cfg.cameras) + (torch.randn(1, cfg.text_input_dim),)
-    return _write_graph(LocatorGraph(locator), ex, out_dir / spec["file"], spec, opset, fp16)
+FORMAT, FORMAT_VERSION = "sudd-policy-bundle", 1
 
 
 # The manifest key holding the sampler's schedule, and what the denoiser graph predicts, per objective.
@@ -206,7 +74,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            opset: int = OPSET, cache_dir: str | Path | None = None, fp16_weights: bool = True,
            inference_steps: int | None = None, noise_scale: float | None = None,
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
-           goal_query: dict | None = None, goal_locator: str | Path | None = None) -> dict:
+           goal_query: dict | None = None, goal_locator: str | Path | None = None,
+           object_query: dict | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -220,7 +89,10 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     goal_query: {"families": [...], "data": DIR, "ticks": n}: measure the goal query on DIR's episodes
     (policy.goal_query_measure) and export the obs encoder with the release point input (config release_input).
     goal_locator: with goal_query, a `sudd pretrain --goal-locator` run (policy/goal_locator.py) the query asks
-    instead of the policy's head, exported as goal_locator.onnx and measured so."""
+    instead of the policy's head, exported as goal_locator.onnx and measured so.
+    object_query: {"families": [...], "data": DIR, "locator": RUN, "ticks": n}: the object query
+    (policy/object_query.py) of that `sudd pretrain --object-locator` run, exported as object_locator.onnx, its
+    error measured on DIR's episodes, and the obs encoder with the grasp point input (config grasp_input)."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -235,6 +107,10 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
                              f"{' of its goal locator' if asked.get('locator') else ''}; exported again without "
                              "--goal-query it would not: give --goal-query FAMILY --goal-query-data DATA"
                              f"{' --goal-locator RUN' if asked.get('locator') else ''} again")
+        if (json.loads((run_dir / "manifest.json").read_text()).get("object_query") and object_query is None):
+            raise ValueError(f"{run_dir} asks an object query of its object locator; exported again without "
+                             "--object-query it would not: give --object-query FAMILY --object-query-data DATA "
+                             "--object-locator RUN again")
         model, normalizer, data_info, training, kept = _bundle_source(run_dir)
         pace = kept if pace is None else pace
     else:
@@ -267,10 +143,14 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         if locator is not None:
             table["locator_from"] = {"run": str(goal_locator), **record}
         overrides["release_input"] = True
+    object_table, object_locator = None, None
+    if object_query is not None:
+        object_table, object_locator = object_query_table(model.cfg, normalizer, object_query, data_info)
+        overrides.update(release_input=True, grasp_input=True)
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
-                        text_encoder_from, pace, table, locator)
+                        text_encoder_from, pace, table, locator, object_table, object_locator)
 
 
 def _bundle_source(bundle_dir: Path):
@@ -303,10 +183,12 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                  data_info: dict | None = None, training: dict | None = None, opset: int = OPSET,
                  cache_dir: str | Path | None = None, fp16_weights: bool = True,
                  text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
-                 goal_query: dict | None = None, locator: DiffusionPolicy | None = None) -> dict:
+                 goal_query: dict | None = None, locator: DiffusionPolicy | None = None,
+                 object_query: dict | None = None, object_locator: DiffusionPolicy | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
     goal_query: the manifest's table (policy.goal_query_measure), for a model with release_input; locator: the
-    goal locator it was measured with (policy/goal_locator.py), written as goal_locator.onnx.
+    goal locator it was measured with (policy/goal_locator.py), written as goal_locator.onnx; object_query and
+    object_locator: the same for the object query (policy/object_query.py; object_locator.onnx, grasp_input).
 
     fp16_weights: store the policy graphs' weights as float16; `model` itself is left unrounded."""
     import tokenizers
@@ -323,9 +205,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
         round_weights_(rounded)
         weights = {"dtype": "float16", "rounding": rounding_cost(model, rounded, normalizer)}
         model = rounded
-        if locator is not None:
-            locator = copy.deepcopy(locator).eval().cpu()
-            round_weights_(locator)
+        locator, object_locator = _rounded(locator), _rounded(object_locator)
     cfg = model.cfg
     out = Path(out_bundle_dir)
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
@@ -335,9 +215,10 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     try:
         specs = graph_specs(cfg)
         weights.update(write_policy_graphs(model, tmp, opset, fp16_weights))
-        if locator is not None:
-            specs[LOCATOR_GRAPH] = locator_spec(cfg)
-            weights[LOCATOR_GRAPH] = _write_locator(locator, tmp, specs[LOCATOR_GRAPH], opset, fp16_weights)
+        for graph, m in ((LOCATOR_GRAPH, locator), (OBJECT_GRAPH, object_locator)):
+            if m is not None:
+                specs[graph] = locator_spec(cfg, graph)
+                weights[graph] = _write_locator(m, tmp, specs[graph], opset, fp16_weights)
         text_info = add_text_encoder(tmp, cache_dir, opset, text_encoder_from)
         normalizer.save(tmp / "stats.npz")
         files = [p for p in sorted(tmp.rglob("*")) if p.is_file()]
@@ -351,7 +232,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "dims": {"proprio": cfg.proprio_dim, "action": cfg.action_dim, "text": TEXT_DIM,
                      "instruction": cfg.text_input_dim, "cond": film_dim(cfg), "global_cond": cfg.global_cond_dim,
                      "stage_bins": cfg.stage_bins, **({"aux": cfg.aux_dim} if cfg.release_input else {})},
-            "release_input": cfg.release_input,
+            "release_input": cfg.release_input, **({"grasp_input": True} if cfg.grasp_input else {}),
             "instruction": {"goal_clause": cfg.text_goal},
             "action_layout": {"position": [0, 3], "rot6d": [3, 9], "gripper": [9, 10], "frame": cfg.action_frame},
             "cameras": list(cfg.cameras), "image_size": list(cfg.image_size), "crop_size": list(cfg.crop_size),
@@ -365,6 +246,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             SAMPLER_KEY[cfg.objective]: schedule_for(model), "sampling": {"noise_scale": cfg.noise_scale},
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
             "pace": pace, **({"goal_query": goal_query} if goal_query else {}),
+            **({"object_query": object_query} if object_query else {}),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),
             "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond)
@@ -375,7 +257,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "files": {str(p.relative_to(tmp)): {"bytes": p.stat().st_size, "sha256": sha256_file(p)} for p in files},
         }
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
-        manifest["parity"] = check_parity(model, normalizer, tmp, locator=locator)
+        manifest["parity"] = check_parity(model, normalizer, tmp, locator=locator, object_locator=object_locator)
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         if out.exists():
             shutil.rmtree(out)

@@ -31,6 +31,7 @@ from policy.goal_query import role_swap
 
 GRAPH = "goal_locator"
 FILE = "goal_locator.onnx"
+OBJECT_GRAPH = "object_locator"  # the object question's locator (policy/object_query.py)
 GOAL_COLUMNS = slice(0, 3)  # the head's grasp slot: the one point the goal query reads
 # The question a locator is taught, and the head's columns its loss is on: "goal", the goal query's (the object a
 # command puts something on, asked as the one to grasp: the grasp slot); "object", a long task's later grasp asked
@@ -106,11 +107,11 @@ class LocatorGraph(torch.nn.Module):
         return self.model.aux_head(features)
 
 
-def graph_spec(cfg) -> dict:
-    """goal_locator.onnx's I/O (as policy.bundle_manifest expects it)."""
+def graph_spec(cfg, graph: str = GRAPH) -> dict:
+    """The I/O of a locator graph, goal_locator.onnx or object_locator.onnx (as policy.bundle_manifest expects it)."""
     To, (H, W) = cfg.obs_horizon, cfg.image_size
     io = lambda n, s, d: {"name": n, "shape": s, "dtype": d}  # noqa: E731
-    return {"file": FILE,
+    return {"file": f"{graph}.onnx",
             "inputs": [io(f"image_{c}", ["B", To, H, W, 3], "uint8") for c in cfg.cameras]
             + [io("text_embedding", ["B", cfg.text_input_dim], "float32")],
             "outputs": [io("aux_points", ["B", cfg.aux_dim], "float32")]}
@@ -147,3 +148,25 @@ def check_compatible(policy_cfg, locator_cfg) -> None:
         raise ValueError("the goal locator reads other inputs than the policy: " + ", ".join(
             f"{k} {getattr(locator_cfg, k)!r} (policy {getattr(policy_cfg, k)!r})" for k in differ)
             + "; train it with `sudd pretrain --goal-locator --init-from` the bundle it goes with")
+
+
+def object_query_table(policy_cfg, normalizer, request: dict, data_info: dict) -> tuple[dict, torch.nn.Module]:
+    """(the manifest's object_query table, the locator) for `sudd export --object-query` (policy/object_query.py):
+    request {"families", "data", "locator" (a `sudd pretrain --object-locator` run), "ticks"}; the locator's error
+    measured on the data's episodes of each family (policy.goal_query_measure.measure_object)."""
+    from datagen.store import Dataset
+    from datagen.views_stages import STAGES
+    from policy.goal_query_measure import measure_object
+
+    families = list(request["families"])
+    wrong = [f for f in families if f not in STAGES or f not in data_info.get("tasks", [])]
+    if wrong:
+        raise ValueError(f"--object-query {', '.join(wrong)}: the object query serves a later grasp of a long task the "
+                         f"policy was trained on ({', '.join(f for f in STAGES if f in data_info.get('tasks', []))})")
+    locator, record = load_locator(request["locator"], policy_cfg, "object")
+    ticks = int(request.get("ticks", 3))
+    measured = {f: measure_object(locator, normalizer, request["data"], f, 1, ticks) for f in families}
+    return {"families": families, "stage": 1, "ticks": ticks,
+            "measured": {"data": str(request["data"]), "content_hash": Dataset(request["data"]).content_hash(),
+                         "by_family": measured},
+            "locator_from": {"run": str(request["locator"]), **record}}, locator

@@ -79,19 +79,30 @@ class GoalQuerySpec:
     locator: bool = False  # asked of goal_locator.onnx (policy/goal_locator.py) instead of the obs encoder's head
 
 
-def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
-    """The validated `goal_query` of a manifest, None where it has none; a ValueError names the field."""
-    q = manifest.get("goal_query")
+def query_table(manifest: dict, key: str, needs: str, point: str) -> dict | None:
+    """A manifest's query table `key` (goal_query, object_query) with its families checked: None where it has
+    none; a ValueError where it is no table, the obs encoder lacks the input `needs` it gives the `point` through,
+    or its families are not a non-empty list of the bundle's."""
+    q = manifest.get(key)
     if q is None:
         return None
     if not isinstance(q, dict):
-        raise ValueError(f"manifest goal_query: expected a table, got {type(q).__name__}")
-    if not manifest.get("release_input", False):
-        raise ValueError("manifest goal_query needs release_input true: the obs encoder must take the release point")
+        raise ValueError(f"manifest {key}: expected a table, got {type(q).__name__}")
+    if not manifest.get(needs, False):
+        raise ValueError(f"manifest {key} needs {needs} true: the obs encoder must take the {point}")
     families, known = q.get("families"), set(manifest.get("tasks") or [])
     if not isinstance(families, list) or not families or not all(isinstance(f, str) and f in known for f in families):
-        raise ValueError(f"manifest goal_query.families {families!r}: expected a non-empty list of the bundle's "
+        raise ValueError(f"manifest {key}.families {families!r}: expected a non-empty list of the bundle's "
                          f"task families {sorted(known)}")
+    return q
+
+
+def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
+    """The validated `goal_query` of a manifest, None where it has none; a ValueError names the field."""
+    q = query_table(manifest, "goal_query", "release_input", "release point")
+    if q is None:
+        return None
+    families = q["families"]
     off = q.get("offset_m")
     ok = (isinstance(off, list) and len(off) == 3 and all(isinstance(v, (int, float)) for v in off)
           and np.all(np.isfinite(off)) and float(np.linalg.norm(off)) <= MAX_OFFSET_M)

@@ -31,9 +31,15 @@ def release_to_tcp(points: torch.Tensor, proprio: torch.Tensor, proprio_scale: t
     """Aux points (B, >= 6) whose release point (columns 3:6) is in the base frame over AUX_TCP_SCALE -> the same
     with it relative to the gripper at the newest step of the normalized proprio (B, To, Dp), whose normalization
     (x * scale + offset, policy.normalize) is undone to read the pose in metres."""
-    pose = (proprio[:, -1, :9] - proprio_offset[:9]) / proprio_scale[:9]
+    pose = newest_pose(proprio, proprio_scale, proprio_offset)  # first: the graphs' node order stays the shipped one
     rel = point_to_tcp(points[:, 3:6] * AUX_TCP_SCALE, pose) / AUX_TCP_SCALE
     return torch.cat([points[:, :3], rel, points[:, 6:]], dim=1)
+
+
+def newest_pose(proprio: torch.Tensor, proprio_scale: torch.Tensor, proprio_offset: torch.Tensor) -> torch.Tensor:
+    """(B, 9) the TCP pose (position in metres, rot6d) at the newest step of the normalized proprio (B, To, Dp),
+    its normalization (x * scale + offset, policy.normalize) undone."""
+    return (proprio[:, -1, :9] - proprio_offset[:9]) / proprio_scale[:9]
 
 
 def with_release(points: torch.Tensor, release: torch.Tensor) -> torch.Tensor:
@@ -43,3 +49,14 @@ def with_release(points: torch.Tensor, release: torch.Tensor) -> torch.Tensor:
     given = release[:, 3:4] > 0.5
     rel = torch.where(given, release[:, :3] / AUX_TCP_SCALE, points[:, 3:6])
     return torch.cat([points[:, :3], rel, points[:, 6:]], dim=1)
+
+
+def with_grasp(points: torch.Tensor, grasp: torch.Tensor, proprio: torch.Tensor, proprio_scale: torch.Tensor,
+               proprio_offset: torch.Tensor) -> torch.Tensor:
+    """The head's points (B, >= 6; grasp point relative to the gripper over AUX_TCP_SCALE) with the grasp point
+    replaced where grasp (B, 4) = (x, y, z in metres, base frame; flag) has flag 1, turned relative to the gripper
+    at the newest step of the normalized proprio: the object query's point (policy/object_query.py). Flag 0 leaves
+    the head's, bit for bit."""
+    given = grasp[:, 3:4] > 0.5
+    rel = point_to_tcp(grasp[:, :3], newest_pose(proprio, proprio_scale, proprio_offset)) / AUX_TCP_SCALE
+    return torch.cat([torch.where(given, rel, points[:, :3]), points[:, 3:]], dim=1)

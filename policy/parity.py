@@ -74,9 +74,10 @@ def rounding_cost(fp32: DiffusionPolicy, rounded: DiffusionPolicy, normalizer: N
 
 @torch.no_grad()
 def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str | Path, trials: int = 3,
-                 seed: int = 0, locator: DiffusionPolicy | None = None) -> dict:
-    """torch vs the bundle (see the module docstring), and a goal locator's graph vs `locator` where given.
-    Raises ExportError over tolerance."""
+                 seed: int = 0, locator: DiffusionPolicy | None = None,
+                 object_locator: DiffusionPolicy | None = None) -> dict:
+    """torch vs the bundle (see the module docstring), and a goal locator's graph vs `locator` where given (the
+    object locator's vs `object_locator`). Raises ExportError over tolerance."""
     from policy.bundle import Bundle
 
     b = Bundle.load(bundle_dir, warmup=False)
@@ -93,11 +94,12 @@ def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str
         worst["chunk_max_abs_err"] = max(worst["chunk_max_abs_err"], float(np.abs(ref_chunk - chunk).max()))
     if model.cfg.release_input:
         worst.update(_release_parity(model, normalizer, b, trials, seed))
-    if locator is not None:
-        worst["goal_locator_max_abs_err"] = _locator_parity(locator, normalizer, b, trials, seed)
+    for graph, m in (("goal_locator", locator), ("object_locator", object_locator)):
+        if m is not None:
+            worst[f"{graph}_max_abs_err"] = _locator_parity(m, normalizer, b, trials, seed, graph)
     worst.update(trials=trials, step_tol=STEP_TOL, chunk_tol=CHUNK_TOL)
     over = [k for k in ("cond_max_abs_err", "step_max_abs_err", "release_cond_max_abs_err", "aux_points_max_abs_err",
-                        "goal_locator_max_abs_err")
+                        "grasp_cond_max_abs_err", "goal_locator_max_abs_err", "object_locator_max_abs_err")
             if worst.get(k, 0.0) > STEP_TOL]
     if over or worst["chunk_max_abs_err"] > CHUNK_TOL:
         raise ExportError(f"exported graphs disagree with torch: {worst}")
@@ -105,10 +107,13 @@ def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str
 
 
 def _release_parity(model: DiffusionPolicy, normalizer: Normalizer, b, trials: int, seed: int) -> dict:
-    """A bundle with release_input: its cond with a given release point and its aux_points output vs torch."""
-    from policy.graph_frames import with_release
+    """A bundle with release_input: its cond with a given release point (and with grasp_input a given grasp
+    point, alone) and its aux_points output vs torch."""
+    from policy.graph_frames import with_grasp, with_release
 
     worst = {"release_cond_max_abs_err": 0.0, "aux_points_max_abs_err": 0.0}
+    if model.cfg.grasp_input:
+        worst["grasp_cond_max_abs_err"] = 0.0
     rng = np.random.default_rng(seed + 1)
     for images, proprio, text, _, stage in _random_observations(model.cfg, normalizer, trials, seed):
         release = np.append(rng.uniform([-0.4, 0.2, 0.0], [0.4, 0.8, 0.3]), 1.0).astype(np.float32)
@@ -119,15 +124,23 @@ def _release_parity(model: DiffusionPolicy, normalizer: Normalizer, b, trials: i
         ref = model.unet.condition(model.cond_from(features, p, with_release(head, torch.from_numpy(release)[None])))
         worst["release_cond_max_abs_err"] = max(worst["release_cond_max_abs_err"], float(np.abs(ref.numpy() - cond).max()))
         worst["aux_points_max_abs_err"] = max(worst["aux_points_max_abs_err"], float(np.abs(head.numpy() - points).max()))
+        if model.cfg.grasp_input:
+            grasp = np.append(rng.uniform([-0.4, 0.2, 0.0], [0.4, 0.8, 0.3]), 1.0).astype(np.float32)
+            cond = b._encode(images, proprio, text, stage, None, grasp)[0]
+            given = with_grasp(head, torch.from_numpy(grasp)[None], p, model.proprio_scale, model.proprio_offset)
+            ref = model.unet.condition(model.cond_from(features, p, given))
+            worst["grasp_cond_max_abs_err"] = max(worst["grasp_cond_max_abs_err"],
+                                                  float(np.abs(ref.numpy() - cond).max()))
     return worst
 
 
-def _locator_parity(locator: DiffusionPolicy, normalizer: Normalizer, b, trials: int, seed: int) -> float:
-    """The largest |goal_locator.onnx's points - the torch locator's| over random observations."""
+def _locator_parity(locator: DiffusionPolicy, normalizer: Normalizer, b, trials: int, seed: int,
+                    graph: str = "goal_locator") -> float:
+    """The largest |the locator graph's points - the torch locator's| over random observations."""
     worst = 0.0
     for images, proprio, text, _, stage in _random_observations(locator.cfg, normalizer, trials, seed + 2):
         feeds = {f"image_{c}": images[c][None] for c in locator.cfg.cameras}
-        got = b.sessions["goal_locator"].run(None, {**feeds, "text_embedding": text[None]})[0]
+        got = b.sessions[graph].run(None, {**feeds, "text_embedding": text[None]})[0]
         imgs, p, t = _inputs(locator, normalizer, images, proprio, text, stage)
         ref = locator.aux_points(locator.obs_encoder(imgs, p, t)).numpy()
         worst = max(worst, float(np.abs(ref - got).max()))

@@ -70,8 +70,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "one in [0.1, 1] (default: the bundle's pace table; 0.5: actions and ticks 0.2 s apart, "
                          "observations as trained; TASK=F,... for some families; see sudd run --speed)")
     ev.add_argument("--no-goal-query", action="store_true",
-                    help="condition on the head's own release point where the bundle's goal query would replace it "
-                         "(policy/goal_query.py): to measure what the query buys on the same seeds")
+                    help="condition on the head's own points where the bundle's goal query (policy/goal_query.py) "
+                         "or object query (policy/object_query.py) would replace them: to measure what the queries "
+                         "buy on the same seeds")
     ev.add_argument("--phases", action="store_true", help=f"{phases.HELP}; other families as always")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
@@ -181,6 +182,9 @@ def _eval(args) -> int:
         query = "Goal query: off (--no-goal-query)"
     else:
         query = f"Goal query (policy/goal_query.py) for: {', '.join(bundle.goal_query.families)}"
+    if bundle.object_query is not None:
+        query += (". Object query (policy/object_query.py) for: " + ", ".join(bundle.object_query.families)
+                  + (" (off: --no-goal-query)" if args.no_goal_query else ""))
     if args.realtime:
         query += (". Realtime (runtime/eval_realtime.py): the policy's episodes through the `sudd run --sim` "
                   "stack in real time; the time column is wall seconds")

@@ -73,6 +73,7 @@ class EpisodeOutcome:
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
+    object_points: list | None = None  # the object query's object and drop, base frame [m] (policy.object_query)
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
 
     def record(self) -> dict:
@@ -93,9 +94,11 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     of measuring it; `observer(world, instance)` is called at every policy tick (traces, videos); `speed` the
     pace the arm follows the chunks at (runtime.pace: ticks and actions 1 / (control_hz x speed) apart, the
     observations still 1 / control_hz); `goal_query` False: the head's own release point, where the bundle's
-    goal query would replace it (policy.goal_query); `phases` (runtime.phases) run the command as skills, the
+    goal query would replace it (policy.goal_query), or the object query a long task's later points
+    (policy.object_query); `phases` (runtime.phases) run the command as skills, the
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused)."""
     from policy.goal_query import GoalQuery
+    from policy.object_query import ObjectQuery
 
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
@@ -112,6 +115,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     emb = bundle.embed(text)
     sequencer = Sequencer(phases, bundle.embed, emb) if phases else None
     query = GoalQuery(bundle, text, task, enabled=goal_query)
+    objects = ObjectQuery(bundle, text, task, enabled=goal_query)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -159,6 +163,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                     per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
                 release = query.release(images, proprio, stage)
                 given = {} if release is None else {"release": release}  # a policy without the query takes none
+                given.update(objects.inputs(images, proprio, stage))
                 actions = bundle.act(images, proprio, emb, rng=rng, stage=stage, **given)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
@@ -179,6 +184,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.grasp_cycles = cycles.count
         if query.point is not None:
             out.goal_point = [round(float(v), 4) for v in query.point]
+        if objects.points is not None:
+            out.object_points = np.round(objects.points, 4).tolist()
         if not out.success:
             out.target_end = progress.target_end(inst)
         out.target_lets_go = progress.target_lets_go

@@ -94,7 +94,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--no-goal-query", action="store_true",
                      help="condition on the policy's own release point where the bundle asks its head where a "
                           "stack goes (the manifest's goal_query; policy/goal_query.py: the shipped bundle stacks "
-                          "8/20 with it, 1/20 without)")
+                          "8/20 with it, 1/20 without), and where a bundle has an object query its locator's "
+                          "points for a long task's later object (policy/object_query.py)")
     run.add_argument("--phases", action="store_true",
                      help=f"{phases.HELP}. Experimental: the shipped bundle does not yet find drawer_put's object on "
                           "its own (policy/EXPERIMENTS.md, \"drawer_put as three skills\")")

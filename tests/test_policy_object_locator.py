@@ -177,3 +177,122 @@ def test_oracle_eval_takes_located_points_for_drawer_put_only(tmp_path):
 
     with pytest.raises(ValueError, match="--points-from gives drawer_put's object"):
         oracle_eval(tmp_path, tmp_path / "out", 1, task="pick_place", points_from=tmp_path)
+
+
+@pytest.fixture(scope="module")
+def object_bundle(object_located):
+    root, data, _ = object_located
+    export(root / "plain", root / "bundle", cache_dir=CACHE,
+           object_query={"families": ["drawer_put"], "data": data, "locator": root / "locator", "ticks": 2})
+    return root
+
+
+def test_the_export_records_the_object_query_and_its_graphs(object_bundle):
+    from policy.parity import STEP_TOL
+
+    m = json.loads((object_bundle / "bundle" / "manifest.json").read_text())
+    q = m["object_query"]
+    assert q["families"] == ["drawer_put"] and q["stage"] == 1 and q["ticks"] == 2
+    assert q["measured"]["by_family"]["drawer_put"]["episodes"] == 4
+    assert q["locator_from"]["locator_question"] == "object"
+    assert m["grasp_input"] is True and m["release_input"] is True
+    assert [i["name"] for i in m["graphs"]["obs_encoder"]["inputs"]][-2:] == ["release_point", "grasp_point"]
+    assert m["graphs"]["object_locator"]["file"] == "object_locator.onnx" and "object_locator.onnx" in m["files"]
+    p = m["parity"]
+    assert p["grasp_cond_max_abs_err"] <= STEP_TOL and p["object_locator_max_abs_err"] <= STEP_TOL
+    with pytest.raises(ValueError, match="asks an object query"):  # again without it: refused, not dropped
+        export(object_bundle / "bundle", object_bundle / "again", cache_dir=CACHE)
+    with pytest.raises(ValueError, match="a later grasp of a long task"):
+        export(object_bundle / "plain", object_bundle / "x", cache_dir=CACHE,
+               object_query={"families": ["pick_place"], "data": object_bundle / "data",
+                             "locator": object_bundle / "locator"})
+
+
+def test_a_given_grasp_point_moves_the_chunk_and_flag_0_is_the_heads(object_bundle):
+    from policy.bundle import Bundle
+    from policy.testing import random_observation
+
+    plain, b = Bundle.load(object_bundle / "plain"), Bundle.load(object_bundle / "bundle")
+    images, proprio = random_observation(b, 4)
+    emb = b.embed(COMMAND)
+    noise = np.random.default_rng(5).normal(size=(b.pred_horizon, b.action_dim)).astype(np.float32)
+    a = plain.act(images, proprio, emb, noise=noise)
+    np.testing.assert_allclose(b.act(images, proprio, emb, noise=noise, grasp=[0.3, 0.4, 0.1, 0.0]), a, atol=1e-5)
+    moved = b.act(images, proprio, emb, noise=noise, grasp=[0.3, 0.4, 0.1, 1.0])
+    assert np.abs(moved - a).max() > 1e-4
+    with pytest.raises(ValueError, match="takes no grasp point"):
+        plain.act(images, proprio, emb, grasp=[0.3, 0.4, 0.1, 1.0])
+    with pytest.raises(ValueError, match="grasp: expected finite"):
+        b.act(images, proprio, emb, grasp=[0.3, np.inf, 0.1, 1.0])
+    # the locator graph's answer is the torch locator's (rounded to the graph's fp16 weights)
+    from policy.oracle_eval import LocatedPoints
+
+    loc, _, _ = load_run_model(object_bundle / "locator")
+    asked = LocatedPoints(loc, emb, plain_normalizer(object_bundle), ticks=1)
+    asked.ask(images, proprio)
+    np.testing.assert_allclose(b.object_points(images, proprio, emb), asked.points, atol=2e-3)
+
+
+def plain_normalizer(root):
+    from policy.normalize import Normalizer
+
+    return Normalizer.load(root / "locator" / "stats.npz")
+
+
+class _Asked:
+    """A bundle stand-in for ObjectQuery: counts the locator's questions, answers a fixed point per question."""
+
+    object_query = None
+
+    def __init__(self, spec):
+        self.object_query, self.asked = spec, 0
+
+    def embed(self, text):
+        return np.zeros(768, np.float32)
+
+    def object_points(self, images, proprio, emb):
+        self.asked += 1
+        return np.array([[0.1 * self.asked, 0.5, 0.05], [0.0, 0.6, 0.2]], np.float32)
+
+
+def test_the_object_query_asks_at_the_start_and_gives_its_points_in_its_cycle_only():
+    from policy.object_query import ObjectQuery, ObjectQuerySpec
+
+    b = _Asked(ObjectQuerySpec(("drawer_put",), stage=1, ticks=3))
+    q = ObjectQuery(b, COMMAND, "drawer_put")
+    assert [q.inputs({}, None, 0) for _ in range(2)] == [{}, {}]  # opening the drawer: the head's own
+    given = q.inputs({}, None, 1)
+    assert b.asked == 3 and [q.inputs({}, None, 1) for _ in range(5)] and b.asked == 3  # asked three times only
+    np.testing.assert_allclose(given["grasp"], [0.2, 0.5, 0.05, 1.0], atol=1e-6)  # the median, flagged
+    np.testing.assert_allclose(given["release"], [0.0, 0.6, 0.2, 1.0], atol=1e-6)
+    assert q.inputs({}, None, 2) == {}  # shutting it: the head's again
+    for family, enabled in (("pick_place", True), ("drawer_put", False)):
+        off = ObjectQuery(b, COMMAND, family, enabled=enabled)
+        assert not off.active and off.inputs({}, None, 1) == {}
+    assert not ObjectQuery(_Asked(None), COMMAND, "drawer_put").active
+
+
+def test_a_manifest_object_query_is_checked_field_by_field():
+    from policy.object_query import object_query_spec
+
+    m = {"tasks": ["drawer_put"], "grasp_input": True,
+         "object_query": {"families": ["drawer_put"], "stage": 1, "ticks": 3}}
+    assert object_query_spec(m).families == ("drawer_put",) and object_query_spec({}) is None
+    for change, match in (({"grasp_input": False}, "needs grasp_input"),
+                          ({"object_query": {**m["object_query"], "families": ["stack"]}}, "families"),
+                          ({"object_query": {**m["object_query"], "stage": 0}}, "stage"),
+                          ({"object_query": {**m["object_query"], "ticks": 99}}, "ticks")):
+        with pytest.raises(ValueError, match=match):
+            object_query_spec({**m, **change})
+
+
+def test_an_episode_asks_the_bundles_object_query(object_bundle):
+    from policy.bundle import Bundle
+    from runtime.evaluate import run_policy_episode
+
+    b = Bundle.load(object_bundle / "bundle")
+    out = run_policy_episode(b, "drawer_put", 3, dr="heavy", latency_s=0.006, time_limit_factor=0.02)
+    assert np.asarray(out.object_points).shape == (2, 3)  # the object and where it goes, found at the start
+    off = run_policy_episode(b, "drawer_put", 3, dr="heavy", latency_s=0.006, time_limit_factor=0.02,
+                             goal_query=False)
+    assert off.object_points is None

@@ -64,7 +64,8 @@ class PolicyNodeConfig:
     # 1 / (hz x speed) apart; the observation history stays 1 / hz apart, as in training.
     speed: str = ""
     # Ask the head where the object a command puts something on is, for the families the bundle's manifest
-    # lists (policy/goal_query.py); false: the head's own release point.
+    # lists (policy/goal_query.py), and a long task's later object where the bundle has an object query
+    # (policy/object_query.py); false: the head's own points.
     goal_query: bool = True
     # Run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the drawer, take the
     # object, close the drawer), switched by the grasp cycles, each at its family's pace.
@@ -143,6 +144,7 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.goal_query import GoalQuery
+    from policy.object_query import ObjectQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.pace import action_period_ns, command_speed, resolve_pace
@@ -195,7 +197,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
-        current: dict = {"text": None, "emb": None, "query": None, "phases": None}
+        current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -217,7 +219,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     cycles.reset()  # a new task starts at its first grasp
                     task, speed = command_speed(pace, best)
                     current.update(text=text, emb=bundle.embed(text),
-                                   query=GoalQuery(bundle, text, task, enabled=cfg.goal_query))
+                                   query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
+                                   objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
                     current["phases"] = (Sequencer(phases_for(task, pace), bundle.embed, current["emb"])
                                          if cfg.phases and task in PHASED else None)
                     dt_ns = action_period_ns(data_hz, speed)
@@ -229,7 +232,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                       f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
-                    current.update(text=None, emb=None, query=None, phases=None)
+                    current.update(text=None, emb=None, query=None, objects=None, phases=None)
                     why = ("the bundle records no trained instructions" if best is None else
                            f"closest trained instruction '{best}' has cosine {cos:.2f} < "
                            f"{cfg.similarity_threshold:.2f}")
@@ -280,10 +283,15 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         hz = 1e9 / dt_ns
                         event("policy_phase", "info", seq.describe(current["text"]), phase=seq.index,
                               speed=seq.speed)
-                    q = current["query"]
-                    settled = q.settled
-                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=stage,
-                                   release=q.release(imgs, prop, stage))[bundle.execute]
+                    q, objects = current["query"], current["objects"]
+                    settled, found = q.settled, len(objects.answers)
+                    given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
+                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=stage, **given)[bundle.execute]
+                    if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
+                        report["object_points"] = np.round(objects.points, 4).tolist()
+                        event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
+                              "goes ({:.3f}, {:.3f}, {:.3f}) m (base frame; given in grasp cycle {})".format(
+                                  *objects.points.ravel(), objects.spec.stage))
                     if q.settled and not settled:  # where the command's goal was found, once per command
                         report["goal_point"] = [round(float(v), 4) for v in q.point]
                         event("policy_goal_point", "info", "goal asked as '{}': at ({:.3f}, {:.3f}, {:.3f}) m in "
