@@ -101,13 +101,14 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         if checkpoint is not None or not ema:
             raise ValueError(f"{run_dir} is a bundle: it holds one set of weights (the export's), so --checkpoint and "
                              "--no-ema do not apply; give the run directory to choose its checkpoint")
-        asked = json.loads((run_dir / "manifest.json").read_text()).get("goal_query")
+        source = json.loads((run_dir / "manifest.json").read_text())
+        asked = source.get("goal_query")
         if asked and goal_query is None:  # its table and locator are measured, not rebuilt from the graphs
             raise ValueError(f"{run_dir} asks a goal query for {', '.join(asked.get('families', []))}"
                              f"{' of its goal locator' if asked.get('locator') else ''}; exported again without "
                              "--goal-query it would not: give --goal-query FAMILY --goal-query-data DATA"
                              f"{' --goal-locator RUN' if asked.get('locator') else ''} again")
-        if (json.loads((run_dir / "manifest.json").read_text()).get("object_query") and object_query is None):
+        if source.get("object_query") and object_query is None:
             raise ValueError(f"{run_dir} asks an object query of its object locator; exported again without "
                              "--object-query it would not: give --object-query FAMILY --object-query-data DATA "
                              "--object-locator RUN again")

@@ -56,7 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--goal-query-data", type=Path, default=None, metavar="DIR",
                     help="episodes the goal query's offset is measured on: data the policy did not train on")
     ex.add_argument("--goal-query-ticks", type=int, default=3, metavar="N",
-                    help="the first N inferences of a command ask the head or locator (default 3; the median is held; the object query too)")
+                    help="the first N inferences of a command ask the head or locator (default 3; the median is "
+                         "held; the object query too)")
     ex.add_argument("--goal-locator", type=Path, default=None, metavar="RUN",
                     help="with --goal-query: ask this goal locator (a `sudd pretrain --goal-locator` run, "
                          "policy/goal_locator.py) instead of the policy's head; exported as goal_locator.onnx")
