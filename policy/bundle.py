@@ -44,6 +44,7 @@ from policy.object_query import object_query_spec
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.pace import bundle_pace
+from policy.phased import bundle_phased
 from policy.schedule import schedule_steps, step_function
 from policy.stage import with_stage
 
@@ -155,6 +156,7 @@ class Bundle:
         self.execute = slice(h["execute_from"], h["execute_from"] + h["action"])
         self.instructions, self.tasks = list(m.get("instructions", [])), list(m.get("tasks", []))
         self.pace = bundle_pace(m)  # the speed each task family plays at (policy.pace)
+        self.phased = bundle_phased(m)  # the families it runs as their phases by default (policy.phased)
         layout = m.get("action_layout", {})
         self._rot = slice(*layout.get("rot6d", [3, 9]))
         self.action_frame = layout.get("frame", "base")  # bundles exported before the tcp frame: base
@@ -374,6 +376,7 @@ class Bundle:
         return {"path": str(self.root), "format_version": m["format_version"], "opset": m["opset"],
                 "cameras": self.cameras, "horizons": m["horizons"], "tasks": self.tasks,
                 "instructions": len(self.instructions), "stage_bins": self.stage_bins, "pace": self.pace.table,
+                "phased": list(self.phased),
                 "goal_query": list(self.goal_query.families) if self.goal_query else [],
                 "object_query": list(self.object_query.families) if self.object_query else [],
                 "data_hash": m.get("data", {}).get("content_hash"), "params": m.get("params"),

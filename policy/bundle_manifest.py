@@ -8,6 +8,7 @@ from policy.action_frame import FRAMES
 from policy.goal_query import goal_query_spec
 from policy.object_query import object_query_spec
 from policy.pace import bundle_pace
+from policy.phased import bundle_phased
 
 FORMAT = "sudd-policy-bundle"
 SUPPORTED_VERSIONS = (1,)
@@ -128,6 +129,7 @@ def check_manifest(m: dict) -> None:
               "head's width, an integer >= 6 (grasp and release points)")
     try:
         bundle_pace(m)
+        bundle_phased(m)
         goal_query_spec(m)
         object_query_spec(m)
     except ValueError as exc:

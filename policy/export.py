@@ -58,6 +58,7 @@ from policy.goal_locator import graph_spec as locator_spec
 from policy.model import DiffusionPolicy, count_params, film_dim
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
+from policy.phased import check_phased
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
 from policy.warm_start import read_record
@@ -75,7 +76,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            inference_steps: int | None = None, noise_scale: float | None = None,
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
            goal_query: dict | None = None, goal_locator: str | Path | None = None,
-           object_query: dict | None = None) -> dict:
+           object_query: dict | None = None, phased: list[str] | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -86,6 +87,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     text_encoder_from: copy the text encoder from this bundle instead of building it from the installed package.
     pace: {task family or "*": speed} the runtime plays the chunks at (policy.pace; default every family at 1,
     or a bundle's own table).
+    phased: the families `sudd run` and `sudd eval` run as their phases by default (policy.phased; default none,
+    or a bundle's own list).
     goal_query: {"families": [...], "data": DIR, "ticks": n}: measure the goal query on DIR's episodes
     (policy.goal_query_measure) and export the obs encoder with the release point input (config release_input).
     goal_locator: with goal_query, a `sudd pretrain --goal-locator` run (policy/goal_locator.py) the query asks
@@ -113,7 +116,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
                              "--object-query it would not: give --object-query FAMILY --object-query-data DATA "
                              "--object-locator RUN again")
         model, normalizer, data_info, training, kept = _bundle_source(run_dir)
-        pace = kept if pace is None else pace
+        pace = kept["pace"] if pace is None else pace
+        phased = kept["phased"] if phased is None else phased
     else:
         from policy.train import load_run_model
 
@@ -128,6 +132,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
             training["warm_start"] = {**warm, "learned_instructions": len(before.get("instructions", []))}
         if "gripper_levels" not in data_info:
             data_info["gripper_levels"] = list(_recorded_levels(run_dir, data_info.get("path")))
+    check_phased(phased or [], data_info.get("tasks", []), "--phased")  # before minutes of measuring
     overrides = {k: v for k, v in (("inference_steps", inference_steps), ("noise_scale", noise_scale))
                  if v is not None}
     table, locator = None, None
@@ -151,18 +156,18 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
-                        text_encoder_from, pace, table, locator, object_table, object_locator)
+                        text_encoder_from, pace, table, locator, object_table, object_locator, phased)
 
 
 def _bundle_source(bundle_dir: Path):
-    """(model, normalizer, data info, training record, pace) of a bundle to export again."""
+    """(model, normalizer, data info, training record, its pace and phased records) of a bundle to export again."""
     from policy.bundle_import import model_from_bundle
 
     model, normalizer, m = model_from_bundle(bundle_dir)
     data_info = {"tasks": m.get("tasks", []), "instructions": m.get("instructions", []), **m.get("data", {})}
     training = {**m.get("training", {}), "reexported_from": {"bundle": str(bundle_dir), "created": m.get("created"),
                                                              "import": m["imported"]}}
-    return model, normalizer, data_info, training, m.get("pace", {})
+    return model, normalizer, data_info, training, {"pace": m.get("pace", {}), "phased": m.get("phased", [])}
 
 
 def _recorded_levels(run_dir: Path, data_path) -> tuple[float, ...]:
@@ -185,7 +190,8 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                  cache_dir: str | Path | None = None, fp16_weights: bool = True,
                  text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
                  goal_query: dict | None = None, locator: DiffusionPolicy | None = None,
-                 object_query: dict | None = None, object_locator: DiffusionPolicy | None = None) -> dict:
+                 object_query: dict | None = None, object_locator: DiffusionPolicy | None = None,
+                 phased: list[str] | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
     goal_query: the manifest's table (policy.goal_query_measure), for a model with release_input; locator: the
     goal locator it was measured with (policy/goal_locator.py), written as goal_locator.onnx; object_query and
@@ -199,6 +205,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     from policy.text_export import add_text_encoder
 
     pace = check_pace_table(pace or {}, (data_info or {}).get("tasks", []), "--pace")  # before minutes of work
+    phased = check_phased(phased or [], (data_info or {}).get("tasks", []), "--phased")
     model = model.eval().cpu()
     weights: dict = {"dtype": "float32"}
     if fp16_weights:  # the graphs then hold exactly this rounded model, so parity stays an exact check
@@ -246,7 +253,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                           "spacing": "trailing"},
             SAMPLER_KEY[cfg.objective]: schedule_for(model), "sampling": {"noise_scale": cfg.noise_scale},
             "tasks": data_info.get("tasks", []), "instructions": data_info.get("instructions", []),
-            "pace": pace, **({"goal_query": goal_query} if goal_query else {}),
+            "pace": pace, **({"phased": list(phased)} if phased else {}), **({"goal_query": goal_query} if goal_query else {}),
             **({"object_query": object_query} if object_query else {}),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),

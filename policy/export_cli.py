@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                "      out/data_stack --goal-locator runs/locator     # ... asked of a goal locator\n"
                "  sudd export policy/bundles/multitask --out bundles/mt4 --goal-query stack --goal-query-data \\\n"
                "      out/data_stack --goal-locator runs/locator --object-query drawer_put \\\n"
-               "      --object-query-data out/data_dput --object-locator runs/objloc   # ... and drawer_put's object\n"
+               "      --object-query-data out/data_dput --object-locator runs/objloc \\\n"
+               "      --phased drawer_put        # ... and drawer_put's object, drawer_put run as its phases\n"
                "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
                "  sudd export --restore-text-encoder policy/bundles/demo")
     ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out), or a bundle to export again")
@@ -49,6 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="the speed each task family plays at on the robot, a fraction of the recorded pace in "
                          "[0.1, 1] (\"*=F\": the families not named; default every family at 1): measure it with "
                          "`sudd eval --speed`, record it here; `sudd run` uses it unless given --speed")
+    ex.add_argument("--phased", action="append", default=None, metavar="TASK",
+                    help="run TASK as its phases by default in `sudd run` and `sudd eval` (policy/phased.py; "
+                         "repeatable; e.g. drawer_put): measure it with `sudd eval --phases`, record it here; "
+                         "'none': no family (default: none, or the bundle's own list when exporting a bundle)")
     ex.add_argument("--goal-query", action="append", default=[], metavar="TASK",
                     help="ask the head for the object a TASK command puts something on, as the object it would "
                          "grasp with the roles swapped (policy/goal_query.py), measured on --goal-query-data's "
@@ -101,7 +106,7 @@ def _export(args) -> int:
                       fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
                       pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
-                      goal_locator=args.goal_locator, object_query=obj)
+                      goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased))
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
@@ -113,6 +118,8 @@ def _export(args) -> int:
         print(f"bundle {args.out}: {size / 1e6:.1f} MB ({committed / 1e6:.1f} MB without the restorable text "
               f"encoder), {w['dtype']} weights{rounding}, {len(manifest['instructions'])} instructions, parity "
               f"step {p['step_max_abs_err']:.1e} chunk {p['chunk_max_abs_err']:.1e}")
+        if manifest.get("phased"):
+            print(f"run as their phases by default: {', '.join(manifest['phased'])}")
         if "goal_query" in manifest:
             q = manifest["goal_query"]["measured"]
             asked = "the goal locator's" if manifest["goal_query"].get("locator") else "the head's swapped"
@@ -127,6 +134,12 @@ def _export(args) -> int:
 
     record_in_manifest(Path(args.out), manifest, quiet=args.json)
     return 0
+
+
+def _phased_option(given: list[str] | None) -> list[str] | None:
+    if given is None:
+        return None
+    return [] if given == ["none"] else given
 
 
 def _pace_option(spec: str) -> dict[str, float]:

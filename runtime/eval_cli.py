@@ -73,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="condition on the head's own points where the bundle's goal query (policy/goal_query.py) "
                          "or object query (policy/object_query.py) would replace them: to measure what the queries "
                          "buy on the same seeds")
-    ev.add_argument("--phases", action="store_true", help=f"{phases.HELP}; other families as always")
+    ev.add_argument("--phases", action=argparse.BooleanOptionalAction, default=None, help=phases.HELP)
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -96,6 +96,7 @@ def _eval(args) -> int:
     from policy.bundle import Bundle
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
+    from policy.phased import resolve_phased
     from runtime.pace import check_speed_spec, resolve_pace
     from sim.tasks import get_task
 
@@ -108,6 +109,7 @@ def _eval(args) -> int:
                          "--latency-ms and --filmstrips (they are for the lockstep eval)")
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     pace = resolve_pace(bundle.manifest, args.speed)
+    phased = resolve_phased(bundle.phased, args.phases)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     controller = with_bundle_levels(controller, bundle.manifest)  # recorded in summary.json as used
     bundle.check_replan_every(args.replan_every)
@@ -140,7 +142,7 @@ def _eval(args) -> int:
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
-                "phases": args.phases, "realtime": args.realtime, "speed": args.speed,
+                "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
@@ -188,8 +190,9 @@ def _eval(args) -> int:
     if args.realtime:
         query += (". Realtime (runtime/eval_realtime.py): the policy's episodes through the `sudd run --sim` "
                   "stack in real time; the time column is wall seconds")
-    if args.phases:
-        query += ". Phases (runtime/phases.py): drawer_put as open the drawer, take the object, close the drawer"
+    if phased:
+        how = "--phases" if args.phases else "the bundle's manifest"
+        query += f". Run as their phases (runtime/phases.py; {how}): {', '.join(phased)}"
     (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
                                          f"speed): {pace.describe()}. {query}\n\n{table}\n")
     png = plot(rows, args.out / "success.png")
@@ -281,11 +284,11 @@ def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
     from runtime.eval_filmstrip import Filmstrip
     from runtime.evaluate import run_policy_episode
-    from runtime.phases import PHASED, phases_for
+    from runtime.phases import phases_for
 
     strip = Filmstrip() if s["filmstrips"] else None
     pace = Pace(s.get("pace", {}))
-    phases = phases_for(job["task"], pace) if s.get("phases") and job["task"] in PHASED else None
+    phases = phases_for(job["task"], pace) if job["task"] in s.get("phases", ()) else None
     try:
         out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],

@@ -29,7 +29,6 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
     """One policy episode of `sudd eval --realtime` (see the module docstring): a record for eval_report."""
     from runtime import bus as B
     from runtime.launch import Launcher, sim_stack
-    from runtime.phases import PHASED
     from sim.build import build_episode
     from sim.tasks import Holdout, get_task
 
@@ -44,7 +43,7 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
     limit_s = get_task(task).max_seconds * settings["time_limit_factor"]
     specs = sim_stack(settings["bundle"], task=task, seed=seed, dr=settings["dr"], command=command,
                       replan_every=settings["replan_every"], speed=settings["speed"],
-                      goal_query=settings["goal_query"], phases=bool(settings["phases"]) and task in PHASED,
+                      goal_query=settings["goal_query"], phases=task in settings["phases"],
                       controller=controller, holdout_colors=tuple(h["colors"]), holdout_shapes=tuple(h["shapes"]),
                       holdout_split=split)
     seen: set[str] = set()

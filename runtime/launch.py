@@ -68,7 +68,7 @@ def bundle_manifest(path) -> dict:
 
 def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "off", command: str = "",
               robot: str = "ur5", replan_every: int = 1, speed: str = "", goal_query: bool = True,
-              phases: bool = False, **robot_overrides) -> list[NodeSpec]:
+              phases: bool | None = None, **robot_overrides) -> list[NodeSpec]:
     """robot node (sim twins + cameras matching the bundle) + policy node. The scene keeps the bundle's
     held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do."""
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -86,7 +86,7 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
 
 def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], allow_motion: bool = False,
                    command: str = "", replan_every: int = 1, speed: str = "", goal_query: bool = True,
-                   phases: bool = False, **robot_overrides) -> list[NodeSpec]:
+                   phases: bool | None = None, **robot_overrides) -> list[NodeSpec]:
     """robot node on URRtdeArm + Robotiq2F85, one camera node per bundle camera, the policy node."""
     from runtime.nodes.camera_node import CameraNodeConfig
     from runtime.nodes.policy_node import PolicyNodeConfig
@@ -112,7 +112,7 @@ def answers(event, command_id: str) -> bool:
 
 
 def policy_stack(bundle: str, command: str = "", replan_every: int = 1, speed: str = "",
-                 goal_query: bool = True, phases: bool = False) -> list[NodeSpec]:
+                 goal_query: bool = True, phases: bool | None = None) -> list[NodeSpec]:
     """The policy node alone: for a computer that joins the robot's bus with `--connect` (a GPU box)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
 

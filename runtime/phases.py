@@ -16,23 +16,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from policy.pace import Pace
+from policy.phased import PHASED  # noqa: F401  (re-exported: the phase table)
 
 
-# `sudd eval --phases`, `sudd run --phases`
+# `sudd eval --phases/--no-phases`, `sudd run --phases/--no-phases`
 HELP = ("run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the drawer, take the "
-        "object, close the drawer), switched by the gripper's grasp cycles, each at its family's pace")
+        "object, close the drawer), switched by the gripper's grasp cycles, each at its family's pace; "
+        "--no-phases: every command as one. Default: the families the bundle's manifest lists (`phased`)")
 
 
 @dataclass(frozen=True)
 class Phase:
     text: str | None  # None: the command itself
     speed: float
-
-
-# family -> (text or None for the command, the family whose pace it plays at), one per grasp-cycle count
-PHASED: dict[str, tuple[tuple[str | None, str], ...]] = {
-    "drawer_put": (("open the drawer", "drawer_open"), (None, "drawer_put"), ("close the drawer", "drawer_close")),
-}
 
 
 def phases_for(task: str, pace: Pace) -> list[Phase]:

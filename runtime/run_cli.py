@@ -96,9 +96,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "stack goes (the manifest's goal_query; policy/goal_query.py: the shipped bundle stacks "
                           "8/20 with it, 1/20 without), and where a bundle has an object query its locator's "
                           "points for a long task's later object (policy/object_query.py)")
-    run.add_argument("--phases", action="store_true",
-                     help=f"{phases.HELP}. Experimental: the shipped bundle does not yet find drawer_put's object on "
-                          "its own (policy/EXPERIMENTS.md, \"drawer_put as three skills\")")
+    run.add_argument("--phases", action=argparse.BooleanOptionalAction, default=None,
+                     help=f"{phases.HELP}: the shipped bundle's drawer_put (policy/EXPERIMENTS.md, \"drawer_put's "
+                          "object from the start\")")
     run.add_argument("--robot", default="ur5", help="robot name in the bus keys (sudd/<robot>/...)")
     run.add_argument("--json", action="store_true", help="print the final reports as JSON")
     run.set_defaults(func=_run)

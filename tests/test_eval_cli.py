@@ -86,11 +86,34 @@ def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_on
     by_task = {kw["phases"] is not None: kw for kw in episode_kwargs[-2:]}  # pick_place, then drawer_put
     assert by_task[False]["speed"] == 1.0  # pick_place is one command whatever --phases says
     assert by_task[True]["phases"] == [Phase("open the drawer", 0.75), Phase(None, 1.0), Phase("close the drawer", 1.0)]
-    assert "Phases (runtime/phases.py)" in (tmp_path / "f" / "results.md").read_text()
+    assert "Run as their phases (runtime/phases.py; --phases): drawer_put" in (tmp_path / "f" / "results.md").read_text()
     assert main([*base, "--speed", "drawer_shut=0.5", "--out", str(tmp_path / "d")]) == 2
     assert "--speed.drawer_shut: unknown task family" in capsys.readouterr().err
     assert main([*base, "--latency-ms", "-1", "--out", str(tmp_path / "c")]) == 2
     assert "--latency-ms -1.0: expected 0 <= MS < 1000" in capsys.readouterr().err
+
+
+def test_eval_cli_runs_the_families_the_bundle_lists_as_phases_unless_told_otherwise(untrained_bundle, tmp_path,
+                                                                                      episode_kwargs):
+    """A bundle whose manifest says drawer_put runs as its phases (policy/phased.py) gets them without --phases;
+    --no-phases runs it as one command."""
+    from policy.testing import linked_copy
+    from runtime.cli import main
+
+    phased = linked_copy(untrained_bundle, tmp_path / "phased")
+    m = json.loads((phased / "manifest.json").read_text())
+    (phased / "manifest.json").write_text(json.dumps({**m, "tasks": [*m["tasks"], "drawer_put"],
+                                                      "phased": ["drawer_put"]}))
+    base = ["eval", "--policy", str(phased), "--task", "drawer_put", "--episodes", "1", "--no-collector",
+            "--time-limit-factor", "0.03"]
+    assert main([*base, "--out", str(tmp_path / "a")]) == 0
+    assert main([*base, "--no-phases", "--out", str(tmp_path / "b")]) == 0
+    assert [kw["phases"] is not None for kw in episode_kwargs] == [True, False]
+    assert len(episode_kwargs[0]["phases"]) == 3
+    summaries = [json.loads((tmp_path / d / "summary.json").read_text()) for d in "ab"]
+    assert [s["settings"]["phases"] for s in summaries] == [["drawer_put"], []]
+    assert summaries[0]["bundle"]["phased"] == ["drawer_put"]
+    assert "(runtime/phases.py; the bundle's manifest): drawer_put" in (tmp_path / "a" / "results.md").read_text()
 
 
 def test_eval_cli_refuses_heldout_without_a_holdout(untrained_bundle, tmp_path, capsys):

@@ -57,6 +57,22 @@ def test_a_bundle_from_another_export_is_refused_with_the_reason(exported, tmp_p
         model_from_bundle(bad)
 
 
+def test_a_bundle_exported_again_keeps_its_phased_families_unless_given(exported, tmp_path):
+    """The manifest's `phased` (policy/phased.py) is a measured record like the pace: kept on re-export,
+    replaced by what is given (none: [])."""
+    from policy.bundle import Bundle
+    from policy.testing import linked_copy
+
+    src = linked_copy(exported / "bundle", tmp_path / "src")
+    m = json.loads((src / "manifest.json").read_text())
+    (src / "manifest.json").write_text(json.dumps({**m, "tasks": [*m["tasks"], "drawer_put"],
+                                                   "phased": ["drawer_put"]}))
+    kept = export(src, tmp_path / "kept", cache_dir=CACHE)
+    assert kept["phased"] == ["drawer_put"] and Bundle.load(tmp_path / "kept", warmup=False).phased == ("drawer_put",)
+    dropped = export(src, tmp_path / "dropped", cache_dir=CACHE, phased=[])
+    assert "phased" not in dropped and Bundle.load(tmp_path / "dropped", warmup=False).phased == ()
+
+
 def test_a_run_warm_started_from_a_bundle_starts_from_its_weights(exported):
     run = exported / "from_bundle"
     # the bundle as the config too: the one it was trained with (its manifest's)

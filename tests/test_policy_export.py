@@ -171,6 +171,8 @@ def _bad_stats(p: Path):
     (lambda p: _edit(p, lambda m: m.__setitem__("sampling", {"noise_scale": 1.5})), "noise_scale 1.5 is outside"),
     (lambda p: _edit(p, lambda m: m.__setitem__("pace", {"stack": 0.0})), r"manifest pace.stack 0.0: expected"),
     (lambda p: _edit(p, lambda m: m.__setitem__("pace", {"drawer_open": 0.5})), "pace.drawer_open: unknown task"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("phased", ["stack"])), "manifest phased: 'stack' has no phases"),
+    (lambda p: _edit(p, lambda m: m.__setitem__("phased", ["drawer_put"])), "'drawer_put' is not one of the bundle"),
 ])
 def test_load_refuses_broken_bundles(bundle_dir, tmp_path, breakage, reason):
     broken = linked_copy(bundle_dir, tmp_path / "b")
@@ -226,6 +228,9 @@ def test_cli_export(run, tmp_path, capsys, monkeypatch):
                                          r"'stack'\]"):  # a family the run's data has not: before exporting
         args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--pace", "drawer_open=0.5"]))
     assert not (tmp_path / "c").exists()
+    with pytest.raises(ValueError, match=r"--phased: 'drawer_put' is not one of the bundle's task families"):
+        args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--phased", "drawer_put"]))
+    assert not (tmp_path / "c").exists() and "phased" not in m  # none unless given
     with pytest.raises(ConfigError, match="inference_steps"):
         args.func(parser.parse_args(["export", str(run), "--out", str(tmp_path / "c"), "--inference-steps", "0"]))
     with pytest.raises(ConfigError, match="noise_scale"):

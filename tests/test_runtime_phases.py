@@ -87,7 +87,24 @@ def test_the_phases_switch_reaches_the_policy_node_of_every_stack(tmp_path):
 
     (tmp_path / "manifest.json").write_text(json.dumps({"cameras": ["scene"], "image_size": [96, 96]}))
     node = lambda spec: config_from_dict(PolicyNodeConfig, config_to_dict(spec.config))  # noqa: E731
-    assert node(sim_stack(str(tmp_path))[1]).phases is False  # one command unless asked
+    assert node(sim_stack(str(tmp_path))[1]).phases is None  # the bundle's list unless told
+    assert node(sim_stack(str(tmp_path), phases=False)[1]).phases is False
     assert node(sim_stack(str(tmp_path), phases=True)[1]).phases is True
     assert node(policy_stack(str(tmp_path), phases=True)[0]).phases is True
     assert node(hardware_stack(str(tmp_path), "10.0.0.2", {"scene": "1"}, phases=True)[-1]).phases is True
+
+
+def test_the_families_run_as_phases_are_the_bundles_unless_told_and_a_bad_list_is_refused():
+    from policy.phased import bundle_phased, check_phased, resolve_phased
+
+    assert resolve_phased(("drawer_put",), None) == ("drawer_put",)
+    assert resolve_phased((), None) == () and resolve_phased((), True) == ("drawer_put",)
+    assert resolve_phased(("drawer_put",), False) == ()
+    assert bundle_phased({"tasks": ["drawer_put"]}) == ()  # bundles before the list: none
+    assert bundle_phased({"tasks": ["drawer_put"], "phased": ["drawer_put", "drawer_put"]}) == ("drawer_put",)
+    with pytest.raises(ValueError, match=r"manifest phased: 'stack' has no phases; families with phases: drawer_put"):
+        bundle_phased({"tasks": ["stack"], "phased": ["stack"]})
+    with pytest.raises(ValueError, match=r"--phased: 'drawer_put' is not one of the bundle's task families \['stack'\]"):
+        check_phased(["drawer_put"], ["stack"], "--phased")
+    with pytest.raises(ValueError, match="expected a list of task family names"):
+        bundle_phased({"tasks": [], "phased": "drawer_put"})

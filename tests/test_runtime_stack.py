@@ -314,7 +314,8 @@ def test_a_family_at_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bund
 
 
 def test_phases_run_a_drawer_put_command_as_its_first_skill_at_that_skills_pace(bundle, tmp_path):
-    """`sudd run --phases`: a drawer_put command (one the bundle is told it was trained on) is accepted as
+    """`sudd run` with a bundle that runs drawer_put as its phases (its manifest's `phased`, policy/phased.py;
+    `--phases` forces them): a drawer_put command (one the bundle is told it was trained on) is accepted as
     drawer_put, and from the first inference the node runs phase 1 of 3, "open the drawer", at drawer_open's
     pace in the bundle's table (0.5 here): it says so, and that chunk's actions are 0.2 s apart."""
     import json
@@ -327,15 +328,16 @@ def test_phases_run_a_drawer_put_command_as_its_first_skill_at_that_skills_pace(
     manifest = json.loads((phased / "manifest.json").read_text())
     (phased / "manifest.json").write_text(json.dumps({
         **manifest, "pace": {"drawer_open": 0.5}, "tasks": [*manifest["tasks"], "drawer_put", "drawer_open"],
+        "phased": ["drawer_put"],
         "instructions": [*manifest["instructions"], instruction]}))
-    la = Launcher(sim_stack(str(phased), task="drawer_put", seed=SEED, phases=True), hub="tcp/127.0.0.1:0")
+    la = Launcher(sim_stack(str(phased), task="drawer_put", seed=SEED), hub="tcp/127.0.0.1:0")
     la.start()
     events, chunks = [], []
     la.bus.subscribe(B.SAFETY_EVENT, events.append)
     la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
     try:
         info = la.wait_ready(90)
-        assert info["robot"]["instruction"] == instruction
+        assert info["robot"]["instruction"] == instruction and info["policy"]["phased"] == ["drawer_put"]
         la.say(instruction, "p")
         deadline = time.monotonic() + 30
         while len(chunks) < 6 and time.monotonic() < deadline:

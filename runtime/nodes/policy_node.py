@@ -68,8 +68,9 @@ class PolicyNodeConfig:
     # (policy/object_query.py); false: the head's own points.
     goal_query: bool = True
     # Run a long command as the skills it is made of (runtime/phases.py; drawer_put: open the drawer, take the
-    # object, close the drawer), switched by the grasp cycles, each at its family's pace.
-    phases: bool = False
+    # object, close the drawer), switched by the grasp cycles, each at its family's pace. None: the families the
+    # bundle's manifest lists (policy.phased); true: every family with phases; false: none.
+    phases: bool | None = None
 
 
 CONFIG = PolicyNodeConfig
@@ -148,7 +149,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.pace import action_period_ns, command_speed, resolve_pace
-    from runtime.phases import PHASED, Sequencer, phases_for
+    from policy.phased import resolve_phased
+    from runtime.phases import Sequencer, phases_for
     from runtime import messages as m
 
     if not cfg.bundle:
@@ -159,6 +161,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     To, (H, W) = bundle.obs_horizon, bundle.image_size
     obs_dt_ns = int(round(1e9 / data_hz))  # the observation history's spacing: the training data's
     pace = resolve_pace(bundle.manifest, cfg.speed)
+    phased = resolve_phased(bundle.phased, cfg.phases)
     dt_ns = action_period_ns(data_hz, pace.speed(None))  # between the chunk's actions, and the node's ticks
     hz = 1e9 / dt_ns
     rng = np.random.default_rng(cfg.seed)
@@ -201,7 +204,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
-                   "tasks": bundle.tasks, "instructions": len(bundle.instructions), "pace": pace.table})
+                   "tasks": bundle.tasks, "instructions": len(bundle.instructions), "pace": pace.table,
+                   "phased": list(phased)})
         last_infer = -1.0
         while not ctx.should_stop():
             got = new_frame.wait(1.0 / hz)
@@ -222,7 +226,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
                     current["phases"] = (Sequencer(phases_for(task, pace), bundle.embed, current["emb"])
-                                         if cfg.phases and task in PHASED else None)
+                                         if task in phased else None)
                     dt_ns = action_period_ns(data_hz, speed)
                     hz = 1e9 / dt_ns
                     q = current["query"]
