@@ -75,6 +75,7 @@ class EpisodeOutcome:
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     object_points: list | None = None  # the object query's object and drop, base frame [m] (policy.object_query)
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
+    phase_starts: list[float] = field(default_factory=list)  # with phases: the sim time [s] each one began
 
     def record(self) -> dict:
         out = asdict(self)
@@ -159,12 +160,14 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
                 if sequencer is not None and sequencer.update(stage):  # the next skill: its text and pace
                     out.phase, emb = sequencer.index, sequencer.embedding
+                    out.phase_starts.append(round(float(rig.world.time), 2))
                     dt_ns = action_period_ns(control_hz, sequencer.speed)
                     per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
                 release = query.release(images, proprio, stage)
                 given = {} if release is None else {"release": release}  # a policy without the query takes none
                 given.update(objects.inputs(images, proprio, stage))
-                actions = bundle.act(images, proprio, emb, rng=rng, stage=stage, **given)[bundle.execute]
+                told = stage if sequencer is None else sequencer.stage(stage)
+                actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s

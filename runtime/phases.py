@@ -29,13 +29,16 @@ HELP = ("run a long command as the skills it is made of (runtime/phases.py; draw
 class Phase:
     text: str | None  # None: the command itself
     speed: float
+    # The grasp cycles the policy is told are this count less (policy.stage): a skill of another family counts
+    # its own cycles from 0, as that family's data did; the command itself counts as its own data did.
+    stage_from: int = 0
 
 
 def phases_for(task: str, pace: Pace) -> list[Phase]:
     """The phases of family `task` at the bundle's pace (a ValueError for a family run as one command)."""
     if task not in PHASED:
         raise ValueError(f"phases: the family {task!r} is run as one command; phased families: {', '.join(PHASED)}")
-    return [Phase(text, pace.speed(family)) for text, family in PHASED[task]]
+    return [Phase(text, pace.speed(family), 0 if text is None else i) for i, (text, family) in enumerate(PHASED[task])]
 
 
 def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
@@ -60,6 +63,10 @@ class Sequencer:
     @property
     def embedding(self):
         return self.embeddings[self.index or 0]
+
+    def stage(self, grasp_cycles: int) -> int:
+        """The grasp cycles to tell the policy in the phase running (Phase.stage_from)."""
+        return max(int(grasp_cycles) - self.phases[self.index or 0].stage_from, 0)
 
     @property
     def speed(self) -> float:

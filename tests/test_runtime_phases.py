@@ -11,7 +11,8 @@ PUT = "place the blue block inside the drawer, then close the drawer"
 
 def test_drawer_put_is_open_take_close_at_each_skills_pace():
     phases = phases_for("drawer_put", Pace({"drawer_open": 0.75, "drawer_close": 0.5}))
-    assert phases == [Phase("open the drawer", 0.75), Phase(None, 1.0), Phase("close the drawer", 0.5)]
+    # "close the drawer" is drawer_close's skill: told the cycles since it began, as drawer_close's data counts
+    assert phases == [Phase("open the drawer", 0.75), Phase(None, 1.0), Phase("close the drawer", 0.5, stage_from=2)]
     assert [phase_at(phases, n) for n in (-1, 0, 1, 2, 5)] == [0, 0, 1, 2, 2]
     with pytest.raises(ValueError, match="'pick_place' is run as one command; phased families: drawer_put"):
         phases_for("pick_place", Pace({}))
@@ -38,13 +39,14 @@ class _Still:
     manifest = {"horizons": {"control_hz": 10.0}}
 
     def __init__(self):
-        self.texts = []
+        self.texts, self.stages = [], []
 
     def embed(self, text):
         return np.frombuffer(text.encode().ljust(384)[:384], np.uint8).astype(np.float32)
 
     def act(self, images, proprio, emb, rng=None, stage=0, **given):
         self.texts.append(emb.astype(np.uint8).tobytes().rstrip(b" ").decode())
+        self.stages.append(stage)
         chunk = np.repeat(np.asarray(proprio, np.float32)[-1:, :10], 16, axis=0)
         chunk[:, 9] = 0.0
         return chunk
@@ -60,12 +62,14 @@ def test_an_episode_switches_text_and_pace_with_the_grasp_cycles(monkeypatch):
     out = run_policy_episode(still, "drawer_put", 100_003, command=PUT, time_limit_factor=0.05, latency_s=0.006,
                              phases=phases, observer=lambda world, inst: times.append(world.time))
     assert still.texts[:12] == ["open the drawer"] * 4 + [PUT] * 4 + ["close the drawer"] * 4
+    assert still.stages[:13] == [0] * 4 + [1] * 4 + [0] * 4 + [1]  # the closing skill counts from its start
     assert out.phase == 2 and out.command == PUT
+    np.testing.assert_allclose(np.diff(out.phase_starts), [0.8, 0.4], atol=1e-6)  # 4 ticks of 0.2 s, 4 of 0.1 s
     steps = np.round(np.diff(times[:13]), 3)  # ticks 1 / (10 Hz x speed) apart: 0.5, then 1, then 0.25
     np.testing.assert_allclose(steps, [0.2] * 4 + [0.1] * 4 + [0.4] * 4)
     plain = _Still()
     out = run_policy_episode(plain, "drawer_put", 100_003, command=PUT, time_limit_factor=0.02, latency_s=0.006)
-    assert set(plain.texts) == {PUT} and out.phase is None
+    assert set(plain.texts) == {PUT} and out.phase is None and out.phase_starts == []
 
 
 def test_the_sequencer_switches_only_when_the_count_selects_another_phase():
@@ -76,6 +80,9 @@ def test_the_sequencer_switches_only_when_the_count_selects_another_phase():
     assert seq.index == 2 and seq.embedding == "emb(close the drawer)" and seq.speed == 0.5
     seq.update(1)
     assert seq.embedding == "emb(command)" and seq.describe(PUT) == f"phase 2 of 3: '{PUT}' at speed 1"
+    assert seq.stage(1) == 1  # the command itself: its own data's count
+    seq.update(3)
+    assert seq.stage(3) == 1 and seq.stage(2) == 0  # "close the drawer": cycles since it began
 
 
 def test_the_phases_switch_reaches_the_policy_node_of_every_stack(tmp_path):

@@ -290,7 +290,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     q, objects = current["query"], current["objects"]
                     settled, found = q.settled, len(objects.answers)
                     given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
-                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=stage, **given)[bundle.execute]
+                    told = stage if seq is None else seq.stage(stage)  # a phase's own count (runtime.phases)
+                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
