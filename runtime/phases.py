@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from policy.pace import Pace
-from policy.phased import PHASED  # noqa: F401  (re-exported: the phase table)
+from policy.phased import PHASED
 
 
 # `sudd eval --phases/--no-phases`, `sudd run --phases/--no-phases`

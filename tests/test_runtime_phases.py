@@ -111,7 +111,8 @@ def test_the_families_run_as_phases_are_the_bundles_unless_told_and_a_bad_list_i
     assert bundle_phased({"tasks": ["drawer_put"], "phased": ["drawer_put", "drawer_put"]}) == ("drawer_put",)
     with pytest.raises(ValueError, match=r"manifest phased: 'stack' has no phases; families with phases: drawer_put"):
         bundle_phased({"tasks": ["stack"], "phased": ["stack"]})
-    with pytest.raises(ValueError, match=r"--phased: 'drawer_put' is not one of the bundle's task families \['stack'\]"):
+    with pytest.raises(ValueError,
+                       match=r"--phased: 'drawer_put' is not one of the bundle's task families \['stack'\]"):
         check_phased(["drawer_put"], ["stack"], "--phased")
     with pytest.raises(ValueError, match="expected a list of task family names"):
         bundle_phased({"tasks": [], "phased": "drawer_put"})
