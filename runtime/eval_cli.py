@@ -176,7 +176,7 @@ def _eval(args) -> int:
                   "yaw when it closed, modulo the object's symmetry):\n\n" + why)
     summary = {"settings": settings, "suites": suites, "tasks": tasks, "episodes": args.episodes,
                "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
-               "bundle": bundle.info()}
+               "bundle": bundle.info(), "versions": library_versions()}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
     if bundle.goal_query is None:
         query = "Goal query: off (the bundle has none)"
@@ -204,6 +204,21 @@ def _eval(args) -> int:
         if args.filmstrips:
             print(f"failed policy episodes, frame by frame: {args.out / 'filmstrips'}")
     return 0
+
+
+def library_versions() -> dict[str, str]:
+    """The versions an eval's figures depend on: the same seeds and bundle give the same episodes only on the
+    same physics and inference (a fresh install of newer mujoco or onnxruntime moved drawer_put's episodes)."""
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"python": platform.python_version()}
+    for name in ("numpy", "mujoco", "onnxruntime"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "missing"
+    return out
 
 
 def _read(path: Path) -> list[dict]:

@@ -19,6 +19,11 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
     assert para["command"] != para["instruction"]
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert {r["who"] for r in summary["rows"]} == {"policy", "collector"}
+    import mujoco
+    import onnxruntime
+
+    assert summary["versions"]["mujoco"] == mujoco.__version__  # what the figures were measured on
+    assert summary["versions"]["onnxruntime"] == onnxruntime.__version__
     md = (tmp_path / "results.md").read_text()
     assert "| seen | pick_place | 0/1" in md and "| paraphrase | pick_place | 0/1" in md
     assert "Why the policy failed" in md
