@@ -8,19 +8,15 @@ grasp cycles completed since the command started (policy.stage.GraspCycles: the 
 object), a signal a real 2F-85 gives as well as the sim, so no success check or privileged state decides it.
 
 A phase's text None stands for the command itself; its family names the pace (the bundle's pace table) the
-arm plays that phase at. A later phase that is another family's skill starts where that family's data started:
-the arm first goes back to the pose the command started from (runtime/retreat.py), then the skill takes over.
+arm plays that phase at.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from policy.pace import Pace
 from policy.phased import PHASED
-from runtime.retreat import Retreat, arrived, free_fingers, retreat_chunk
 
 
 # `sudd eval --phases/--no-phases`, `sudd run --phases/--no-phases`
@@ -36,17 +32,13 @@ class Phase:
     # The grasp cycles the policy is told are this count less (policy.stage): a skill of another family counts
     # its own cycles from 0, as that family's data did; the command itself counts as its own data did.
     stage_from: int = 0
-    # Whether the arm first goes back to where the command started (runtime/retreat.py), as the skill's data began.
-    from_start: bool = False
 
 
-def phases_for(task: str, pace: Pace, retreat: bool = True) -> list[Phase]:
-    """The phases of family `task` at the bundle's pace (a ValueError for a family run as one command); with
-    `retreat` a later phase that is another family's skill starts from the command's start pose."""
+def phases_for(task: str, pace: Pace) -> list[Phase]:
+    """The phases of family `task` at the bundle's pace (a ValueError for a family run as one command)."""
     if task not in PHASED:
         raise ValueError(f"phases: the family {task!r} is run as one command; phased families: {', '.join(PHASED)}")
-    return [Phase(text, pace.speed(family), 0 if text is None else i, retreat and text is not None and i > 0)
-            for i, (text, family) in enumerate(PHASED[task])]
+    return [Phase(text, pace.speed(family), 0 if text is None else i) for i, (text, family) in enumerate(PHASED[task])]
 
 
 def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
@@ -56,64 +48,17 @@ def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
 
 class Sequencer:
     """The phases of one command as it runs: which one the grasp cycles so far select, its text embedding and
-    speed. `update` says when the phase changed (the caller then re-times its ticks and says so); while a phase's
-    retreat runs, `retreat` gives the chunk to send instead of the policy's."""
+    speed. `update` says when the phase changed (the caller then re-times its ticks and says so)."""
 
-    def __init__(self, phases: list[Phase], embed, command_embedding, retreat: Retreat = Retreat()):
+    def __init__(self, phases: list[Phase], embed, command_embedding):
         self.phases = phases
         self.embeddings = [command_embedding if p.text is None else embed(p.text) for p in phases]
         self.index: int | None = None
-        self.cfg = retreat
-        self.start: np.ndarray | None = None  # the TCP pose (9,) at the first update: where the command began
-        self._waiting: float | None = None  # seconds a retreat has waited for the hand to be empty
-        self._free = 0.0
-        self._retreating: float | None = None  # seconds the running retreat has taken so far
-        self.retreats: list[float] = []  # seconds each finished retreat took
 
-    def update(self, grasp_cycles: int, pose: np.ndarray | None = None) -> bool:
-        """The phase for `grasp_cycles`; `pose` the TCP's (position, rot6d), the first one kept as the start."""
-        if self.start is None and pose is not None:
-            self.start = np.array(pose[:9], np.float64)
+    def update(self, grasp_cycles: int) -> bool:
         k = phase_at(self.phases, grasp_cycles)
         changed, self.index = k != self.index, k
-        if changed:
-            self._end_retreat()
-            self._waiting = 0.0 if self.phases[k].from_start and self.start is not None else None
-            self._free = 0.0  # seconds the fingers have been free while waiting
         return changed
-
-    def retreat(self, pose: np.ndarray, command: float, closure: float, n: int, dt: float) -> np.ndarray | None:
-        """(n, 10) actions `dt` s apart back toward the start while this phase's retreat runs, else None (the
-        policy's turn). The gripper's position request `command` and measured `closure` (0 open .. 1 closed) say
-        whether the hand is empty: the retreat waits up to cfg.wait_seconds for fingers at their request
-        (cfg.settle seconds of them), and ends at the start pose or after cfg.max_seconds."""
-        if self._waiting is not None:
-            self._free = self._free + dt if free_fingers(command, closure, self.cfg) else 0.0
-            if self._free >= self.cfg.settle - 1e-9:  # let go and settled: back to the start from here
-                self._waiting, self._retreating = None, 0.0
-            else:
-                self._waiting += dt
-                if self._waiting >= self.cfg.wait_seconds - 1e-9:  # still holding: the skill goes on from here
-                    self._waiting = None
-                return None
-        if self._retreating is None:
-            return None
-        if arrived(pose, self.start, self.cfg) or self._retreating >= self.cfg.max_seconds - 1e-9:
-            self._end_retreat()
-            return None
-        self._retreating += dt
-        return retreat_chunk(pose, self.start, command, n, dt, self.cfg)
-
-    @property
-    def retreat_seconds(self) -> list[float]:
-        """Seconds each retreat took so far, the one running last."""
-        running = [] if self._retreating is None else [round(self._retreating, 2)]
-        return self.retreats + running
-
-    def _end_retreat(self) -> None:
-        if self._retreating is not None:
-            self.retreats.append(round(self._retreating, 2))
-        self._retreating = None
 
     @property
     def embedding(self):
@@ -130,5 +75,4 @@ class Sequencer:
     def describe(self, command: str) -> str:
         """'phase 2 of 3: "<text>" at speed 1' for the phase running."""
         p = self.phases[self.index or 0]
-        back = ", from the start pose" if p.from_start else ""
-        return f"phase {(self.index or 0) + 1} of {len(self.phases)}: '{p.text or command}' at speed {p.speed:g}{back}"
+        return f"phase {(self.index or 0) + 1} of {len(self.phases)}: '{p.text or command}' at speed {p.speed:g}"

@@ -12,9 +12,7 @@ PUT = "place the blue block inside the drawer, then close the drawer"
 def test_drawer_put_is_open_take_close_at_each_skills_pace():
     phases = phases_for("drawer_put", Pace({"drawer_open": 0.75, "drawer_close": 0.5}))
     # "close the drawer" is drawer_close's skill: told the cycles since it began, as drawer_close's data counts
-    assert phases == [Phase("open the drawer", 0.75), Phase(None, 1.0),
-                      Phase("close the drawer", 0.5, stage_from=2, from_start=True)]  # back to the start first
-    assert not any(p.from_start for p in phases_for("drawer_put", Pace({}), retreat=False))
+    assert phases == [Phase("open the drawer", 0.75), Phase(None, 1.0), Phase("close the drawer", 0.5, stage_from=2)]
     assert [phase_at(phases, n) for n in (-1, 0, 1, 2, 5)] == [0, 0, 1, 2, 2]
     with pytest.raises(ValueError, match="'pick_place' is run as one command; phased families: drawer_put"):
         phases_for("pick_place", Pace({}))
@@ -66,7 +64,6 @@ def test_an_episode_switches_text_and_pace_with_the_grasp_cycles(monkeypatch):
     assert still.texts[:12] == ["open the drawer"] * 4 + [PUT] * 4 + ["close the drawer"] * 4
     assert still.stages[:13] == [0] * 4 + [1] * 4 + [0] * 4 + [1]  # the closing skill counts from its start
     assert out.phase == 2 and out.command == PUT
-    assert out.retreats == [0.0]  # the arm never left the start: the closing skill's turn at once
     np.testing.assert_allclose(np.diff(out.phase_starts), [0.8, 0.4], atol=1e-6)  # 4 ticks of 0.2 s, 4 of 0.1 s
     steps = np.round(np.diff(times[:13]), 3)  # ticks 1 / (10 Hz x speed) apart: 0.5, then 1, then 0.25
     np.testing.assert_allclose(steps, [0.2] * 4 + [0.1] * 4 + [0.4] * 4)
@@ -81,7 +78,6 @@ def test_the_sequencer_switches_only_when_the_count_selects_another_phase():
     seq = Sequencer(phases_for("drawer_put", Pace({"drawer_close": 0.5})), lambda t: f"emb({t})", "emb(command)")
     assert [seq.update(n) for n in (0, 0, 1, 1, 2, 3)] == [True, False, True, False, True, False]
     assert seq.index == 2 and seq.embedding == "emb(close the drawer)" and seq.speed == 0.5
-    assert seq.describe(PUT) == "phase 3 of 3: 'close the drawer' at speed 0.5, from the start pose"
     seq.update(1)
     assert seq.embedding == "emb(command)" and seq.describe(PUT) == f"phase 2 of 3: '{PUT}' at speed 1"
     assert seq.stage(1) == 1  # the command itself: its own data's count

@@ -281,7 +281,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
                     prop = np.asarray(prop, np.float32)
                     seq = current["phases"]
-                    if seq is not None and seq.update(stage, prop[-1]):  # the next skill: its text, its pace
+                    if seq is not None and seq.update(stage):  # the next skill: its text, and its pace from now
                         current["emb"] = seq.embedding
                         dt_ns = action_period_ns(data_hz, seq.speed)
                         hz = 1e9 / dt_ns
@@ -291,11 +291,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     settled, found = q.settled, len(objects.answers)
                     given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
                     told = stage if seq is None else seq.stage(stage)  # a phase's own count (runtime.phases)
-                    a = None if seq is None else seq.retreat(prop[-1], 0.0 if g is None else g[1],
-                                                             prop[-1][GRIPPER_COLUMN],
-                                                             bundle.execute.stop - bundle.execute.start, dt_ns * 1e-9)
-                    if a is None:  # the policy's turn (not a phase's retreat to the start)
-                        a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
+                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
