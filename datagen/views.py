@@ -56,7 +56,9 @@ def measure_offsets(dataset_dir: str | Path, task: str = TASK, episodes: int = 6
     grasp, release = [], []
     for row in store.episodes():
         meta = store.meta(row["index"])
-        if meta["task"] != family or not episode_success(meta):
+        # a phase cut from another family's episode (policy/phase_data.py) keeps that episode's seed, which
+        # does not rebuild its scene
+        if meta["task"] != family or not episode_success(meta) or "phase_of" in meta:
             continue
         arrays = store.window(row["index"], fields=("action", "subtask"))
         action = arrays["action"]

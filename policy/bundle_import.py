@@ -76,6 +76,11 @@ def _probe_graphs(cfg, normalizer: Normalizer, sign: float, opset: int, out_dir:
     """Export a probe model whose parameter element k holds sign * (k + 1) * SCALE; its graphs (`_graph`)."""
     from policy.export import graph_specs, write_policy_graphs
 
+    write_policy_graphs(_probe_model(cfg, normalizer, sign), out_dir, opset, fp16=False)
+    return {key: _graph(out_dir / spec["file"]) for key, spec in graph_specs(cfg).items() if key != "text_encoder"}
+
+
+def _probe_model(cfg, normalizer: Normalizer, sign: float) -> DiffusionPolicy:
     probe = DiffusionPolicy(cfg).eval()
     probe.set_proprio_stats(normalizer)
     k = 1
@@ -86,15 +91,15 @@ def _probe_graphs(cfg, normalizer: Normalizer, sign: float, opset: int, out_dir:
             k += n
     if k >= 2 ** 24:
         raise ValueError(f"bundle import: {k} parameters, more than the probe's exact range (16 M)")
-    write_policy_graphs(probe, out_dir, opset, fp16=False)
-    return {key: _graph(out_dir / spec["file"]) for key, spec in graph_specs(cfg).items() if key != "text_encoder"}
+    return probe
 
 
-def _read_back(model: DiffusionPolicy, bundle_dir: Path, pos: dict, neg: dict) -> dict:
-    """Fill `model`'s parameters from the bundle's initializers, guided by the probes; coverage figures."""
+def _read_back(model: DiffusionPolicy, bundle_dir: Path, pos: dict, neg: dict,
+               keys: tuple[str, ...] = ("obs_encoder", "denoiser")) -> dict:
+    """Fill `model`'s parameters from the bundle's graphs `keys` (KEY.onnx), guided by the probes; coverage."""
     flat = torch.cat([p.detach().reshape(-1).double() for p in model.parameters()])
     covered = torch.zeros(flat.numel(), dtype=torch.bool)
-    for key in ("obs_encoder", "denoiser"):
+    for key in keys:
         path = bundle_dir / f"{key}.onnx"
         (mine, my_nodes), (their_inits, their_nodes) = pos[key], _graph(path)
         if [op for op, _ in my_nodes] != [op for op, _ in their_nodes]:
@@ -150,3 +155,41 @@ def model_from_bundle(bundle_dir: str | Path) -> tuple[DiffusionPolicy, Normaliz
     parity = check_parity(model, normalizer, bundle_dir)  # raises ExportError when the rebuild is off
     manifest["imported"] = {**coverage, "parity": parity}
     return model, normalizer, manifest
+
+
+def locator_from_bundle(bundle_dir: str | Path, graph: str) -> tuple[DiffusionPolicy, dict]:
+    """The torch locator behind a bundle's `graph` (goal_locator or object_locator, policy/goal_locator.py) and
+    the record of the run it came from (the manifest's query table's `locator_from`), rebuilt as
+    `model_from_bundle` rebuilds the policy: its encoders and head read back from the graph, the rest of the
+    model (the denoiser, which a locator never runs) left fresh; refused unless the rebuild reproduces the graph
+    within the export's parity tolerance."""
+    from policy.bundle import Bundle
+    from policy.export_graphs import _write_locator
+    from policy.goal_locator import graph_spec
+    from policy.parity import STEP_TOL, _locator_parity
+
+    bundle_dir = Path(bundle_dir)
+    b = Bundle.load(bundle_dir, warmup=False)
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    table = manifest.get({"goal_locator": "goal_query", "object_locator": "object_query"}.get(graph, ""))
+    if graph not in manifest.get("graphs", {}) or not table:
+        raise ValueError(f"bundle import: {bundle_dir} has no {graph} graph (its graphs: "
+                         f"{', '.join(manifest.get('graphs', {}))})")
+    cfg = config_from_dict(manifest["config"])
+    normalizer = Normalizer.load(bundle_dir / "stats.npz")
+    spec = graph_spec(cfg, graph)
+    probes = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for sign in (1.0, -1.0):
+            _write_locator(_probe_model(cfg, normalizer, sign), Path(tmp), spec, manifest["opset"], False)
+            probes[sign] = {graph: _graph(Path(tmp) / spec["file"])}
+    model = DiffusionPolicy(cfg)
+    model.set_proprio_stats(normalizer)
+    _read_back(model, bundle_dir, probes[1.0], probes[-1.0], keys=(graph,))
+    model.eval()
+    with torch.no_grad():
+        err = _locator_parity(model, normalizer, b, 3, 0, graph)
+    if not err <= STEP_TOL:
+        raise ValueError(f"bundle import: the rebuilt {graph} is {err:.2e} off {bundle_dir}'s graph (tolerance "
+                         f"{STEP_TOL:.0e}); export the bundle again from its runs")
+    return model, {**table.get("locator_from", {}), "bundle": str(bundle_dir), "rebuilt_max_abs_err": err}

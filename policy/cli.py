@@ -158,6 +158,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     orc.add_argument("--workers", type=int, default=1, help="processes (default 1)")
     orc.set_defaults(func=_oracle_eval)
 
+    cut = sub.add_parser(
+        "cut-phases", help="cut a phased family's episodes into the skills its phases run, as their own episodes",
+        description="Write each verified episode of a phased family (policy/phased.py; drawer_put) of SRC,\n"
+                    "cut to a phase that runs another family's skill, into OUT as an episode of that family\n"
+                    "with the phase's text (policy/phase_data.py): drawer_put's closing cycle, from the step\n"
+                    "the object is let go (where the runtime switches phase), as a \"close the drawer\"\n"
+                    "episode of drawer_close, the object in the drawer. Merge OUT into the training data.\n"
+                    "Re-running continues; an episode whose grasp cycles and subtask labels disagree is skipped.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n  sudd cut-phases out/data_dput --out out/data_dput_phases             # every skill phase\n"
+               "  sudd cut-phases out/data_dput --phase drawer_put:2 --out out/data_close   # the closing only\n"
+               "  sudd data merge out/data_reh out/data_close --out out/data_ft")
+    cut.add_argument("source", type=Path, metavar="SRC", help="episode dataset directory")
+    cut.add_argument("--out", type=Path, required=True, help="the new dataset's directory")
+    cut.add_argument("--phase", action="append", default=None, metavar="FAMILY:K",
+                     help="cut phase K (0-based, a count of grasp cycles) of FAMILY; repeatable (default: every "
+                          "phase with its own text)")
+    cut.set_defaults(func=_cut_phases)
+
     from policy.export_cli import register as register_export
 
     register_export(sub)
@@ -275,4 +294,25 @@ def _oracle_eval(args) -> int:
                        points_from=args.points_from)
     print(markdown_table(rows))
     print(f"per episode {args.out / 'results.jsonl'}; compare with `sudd eval` on the same seeds")
+    return 0
+
+
+def _cut_phases(args) -> int:
+    from tqdm import tqdm
+
+    from datagen.store import Dataset, StoreError
+    from policy.phase_data import cut_phases, parse_phase_args
+
+    try:
+        phases = parse_phase_args(args.phase)
+        total = len(Dataset(args.source))
+        with tqdm(total=total, unit="ep", desc="cut phases") as bar:
+            report = cut_phases(args.source, args.out, phases, progress=bar.update)
+    except (StoreError, ValueError) as exc:
+        print(f"sudd cut-phases: error: {exc}", file=sys.stderr)
+        return 2
+    written = ", ".join(f"{n} {f}" for f, n in sorted(report.written.items())) or "none"
+    skipped = ", ".join(f"{n} {why}" for why, n in sorted(report.skipped.items())) or "none"
+    print(f"{args.out}: wrote {written} (skipped: {skipped}; {report.kept_before} there before); content hash "
+          f"{Dataset(args.out).content_hash()}")
     return 0

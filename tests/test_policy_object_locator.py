@@ -208,6 +208,24 @@ def test_the_export_records_the_object_query_and_its_graphs(object_bundle):
                              "locator": object_bundle / "locator"})
 
 
+def test_a_new_denoiser_keeps_a_bundles_queries_and_their_locators(object_bundle):
+    root = object_bundle
+    src = json.loads((root / "bundle" / "manifest.json").read_text())
+    # the run again (as a fine-tuned denoiser would be), its locator rebuilt from the bundle's graph: the
+    # locator's data and run need not exist any more
+    m = export(root / "run", root / "kept", cache_dir=CACHE, queries_from=root / "bundle")
+    kept = dict(m["object_query"])
+    record = kept.pop("kept_from")
+    assert kept == src["object_query"] and record["bundle"] == str(root / "bundle")
+    assert record["locator_question"] == "object" and record["rebuilt_max_abs_err"] <= 1e-6
+    assert m["grasp_input"] is True and m["files"]["object_locator.onnx"] == src["files"]["object_locator.onnx"]
+    with pytest.raises(ValueError, match="not both"):
+        export(root / "run", root / "x", cache_dir=CACHE, queries_from=root / "bundle",
+               object_query={"families": ["drawer_put"], "data": root / "data", "locator": root / "locator"})
+    with pytest.raises(ValueError, match="asks no goal or object query"):
+        export(root / "run", root / "x", cache_dir=CACHE, queries_from=root / "plain")
+
+
 def test_a_given_grasp_point_moves_the_chunk_and_flag_0_is_the_heads(object_bundle):
     from policy.bundle import Bundle
     from policy.testing import random_observation
