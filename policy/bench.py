@@ -73,8 +73,10 @@ def run_policy_bench(quick: bool = False, bundle: str | Path | None = None, thre
             out["chunk"][f"threads_{k}"] = _pct(_times(lambda: bk.act(imgs, proprio, emb, rng=rng), n))
         feeds = {f"image_{c}": imgs[c][None] for c in b.cameras}
         feeds.update(proprio=proprio[None], text_embedding=emb[None])
-        if b.release_input:  # the goal query's input (policy/goal_query.py); flag 0: the head's own point
-            feeds["release_point"] = np.zeros((1, 4), np.float32)
+        # the goal and object queries' inputs (policy/goal_query.py, policy/object_query.py); flag 0: the head's own
+        for name, takes in (("release_point", b.release_input), ("grasp_point", b.grasp_input)):
+            if takes:
+                feeds[name] = np.zeros((1, 4), np.float32)
         cond = b.sessions["obs_encoder"].run(None, feeds)[0]
         x = rng.normal(size=(1, b.pred_horizon, b.action_dim)).astype(np.float32)
         step = {"noisy_actions": x, "timestep": np.array([50], np.int64), "cond": cond}

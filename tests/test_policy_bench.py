@@ -27,3 +27,11 @@ def test_bench_policy_takes_a_bundle_and_only_the_policy_area_does(capsys):
 
     assert main(["bench", "sim", "--quick", "--policy", "policy/bundles/multitask"]) == 2
     assert "--policy BUNDLE is for `sudd bench policy`" in capsys.readouterr().err
+
+
+def test_bench_times_the_shipped_bundle_with_its_query_inputs():
+    # the shipped bundle's obs encoder takes the goal query's release point and the object query's grasp point;
+    # the bench once fed only the first and stopped with onnxruntime's missing-input error
+    f = run_policy_bench(quick=True, bundle="policy/bundles/multitask")
+    assert f["bundle"] == "policy/bundles/multitask" and f["obs_encoder"]["p50_ms"] > 0
+    assert 0 < f["chunk"]["threads_2"]["p50_ms"] <= f["chunk"]["threads_2"]["p99_ms"] and "goal_point" in f
