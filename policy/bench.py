@@ -71,16 +71,12 @@ def run_policy_bench(quick: bool = False, bundle: str | Path | None = None, thre
         for k in threads:
             bk = b if k == threads[0] else Bundle.load(path, intra_op_num_threads=k, verify_hashes=False)
             out["chunk"][f"threads_{k}"] = _pct(_times(lambda: bk.act(imgs, proprio, emb, rng=rng), n))
-        feeds = {f"image_{c}": imgs[c][None] for c in b.cameras}
-        feeds.update(proprio=proprio[None], text_embedding=emb[None])
-        # the goal and object queries' inputs (policy/goal_query.py, policy/object_query.py); flag 0: the head's own
-        for name, takes in (("release_point", b.release_input), ("grasp_point", b.grasp_input)):
-            if takes:
-                feeds[name] = np.zeros((1, 4), np.float32)
-        cond = b.sessions["obs_encoder"].run(None, feeds)[0]
+        # the bundle's own feed assembly (stage bins, the queries' points at flag 0), as act() and parity use it
+        encode = lambda: b._encode(imgs, proprio, emb, 0, None)
+        cond = encode()[0]
         x = rng.normal(size=(1, b.pred_horizon, b.action_dim)).astype(np.float32)
         step = {"noisy_actions": x, "timestep": np.array([50], np.int64), "cond": cond}
-        out["obs_encoder"] = _pct(_times(lambda: b.sessions["obs_encoder"].run(None, feeds), n))
+        out["obs_encoder"] = _pct(_times(encode, n))
         out["denoise_step"] = _pct(_times(lambda: b.sessions["denoiser"].run(None, step), n))
         if b.goal_query is not None:  # the first inferences of a command it lists also ask this (goal locator or head)
             out["goal_point"] = _pct(_times(lambda: b.goal_point(imgs, proprio, emb), n))
