@@ -14,10 +14,11 @@ closed loop. This check makes that visible in numbers, on the policy's own train
 A camera whose figure is near 0 (well under `noise`) is not used. `sudd export` records the figures in
 the bundle manifest ("input_sensitivity") when the run's data is at hand.
 
-For a bundle that takes a release point (release_input: the goal query's), `release_gain` says how far the
-chunk follows it: on frames shortly before a recorded release, the recorded release point is given, then the
-same moved 3 cm along x and along y, and the chunk's action at the release step moves by gain x 3 cm (1: it goes
-where it is told; the shipped five-family bundle 0.5-0.6, trained with 2.5 cm of noise on the point).
+For a bundle that takes a release point (release_input: the goal query's) or a grasp point (grasp_input: the
+object query's), `point_gain` says how far the chunk follows it: on frames shortly before a recorded release
+(or close), the recorded point is given, then the same moved 3 cm along x and along y, and the chunk's action at
+that step moves by gain x 3 cm (1: it goes where it is told; 0: the images decide, whatever the query says).
+The five-family bundle of 2026-11 followed its release point 0.5-0.6, trained with 2.5 cm of noise on it.
 """
 
 from __future__ import annotations
@@ -76,11 +77,16 @@ def input_sensitivity(bundle, data_dir: str | Path, samples: int = 24, seed: int
             **{g: round(float(np.mean(v)), 2) for g, v in moved.items()}}
 
 
-def release_gain(bundle, data_dir: str | Path, episodes: int = 24, seed: int = 0, shift_m: float = 0.03) -> dict:
-    """How far the chunk follows a given release point (see the module docstring): the median gain along x and
-    y, and how far (cm, xy, median) the chunk's action at the release step is from the recorded release point."""
+def point_gain(bundle, data_dir: str | Path, point: str = "release", episodes: int = 24, seed: int = 0,
+               shift_m: float = 0.03) -> dict:
+    """How far the chunk follows a given release or grasp point (see the module docstring): the median gain
+    along x and y, and how far (cm, xy, median) the chunk's action at the event's step is from the recorded
+    point. The event is each episode's last let-go for "release" and every close for "grasp" (drawer_put's
+    object is its second close, the one the object query serves)."""
     from datagen.store import Dataset
 
+    if point not in ("release", "grasp"):
+        raise ValueError(f"point {point!r}: expected 'release' or 'grasp'")
     store, rng = Dataset(data_dir), np.random.default_rng(seed)
     rows = store.episodes()
     gains: dict[str, list[float]] = {"x": [], "y": []}
@@ -89,24 +95,29 @@ def release_gain(bundle, data_dir: str | Path, episodes: int = 24, seed: int = 0
         i = int(rows[int(r)]["index"])
         w = store.window(i, fields=("action", "proprio", *(f"{c}_rgb" for c in bundle.cameras)))
         shut = w["action"][:, -1] > 0.5
-        opens = np.flatnonzero(shut[:-1] & ~shut[1:]) + 1
-        if not len(opens) or opens[-1] < 2:
-            continue
-        to = int(opens[-1])
-        point, emb = w["action"][to, :3], bundle.embed(store.meta(i)["instruction"])
-        for t in range(max(0, to - 8), to - 1, 3):  # 0.8-0.2 s before it, on the way there
-            window = np.clip(np.arange(t - bundle.obs_horizon + 1, t + 1), 0, None)  # the first frame repeats
-            images = {c: w[f"{c}_rgb"][window] for c in bundle.cameras}
-            z = rng.standard_normal((bundle.pred_horizon, bundle.action_dim))
-            k = min(bundle.pred_horizon - 1, to - t)
-            base = bundle.act(images, w["proprio"][window], emb, noise=z, release=np.append(point, 1.0))[k]
-            off.append(float(np.linalg.norm(base[:2] - point[:2])) * 100)
-            for j, axis in enumerate("xy"):
-                moved = point + shift_m * np.eye(3)[j]
-                got = bundle.act(images, w["proprio"][window], emb, noise=z, release=np.append(moved, 1.0))[k]
-                gains[axis].append(float(got[j] - base[j]) / shift_m)
+        if point == "release":
+            events = (np.flatnonzero(shut[:-1] & ~shut[1:]) + 1)[-1:]
+        else:
+            events = np.flatnonzero(~shut[:-1] & shut[1:]) + 1
+        emb = bundle.embed(store.meta(i)["instruction"])
+        for to in (int(e) for e in events if e >= 2):
+            target = w["action"][to, :3]
+            for t in range(max(0, to - 8), to - 1, 3):  # 0.8-0.2 s before it, on the way there
+                window = np.clip(np.arange(t - bundle.obs_horizon + 1, t + 1), 0, None)  # the first frame repeats
+                images = {c: w[f"{c}_rgb"][window] for c in bundle.cameras}
+                z = rng.standard_normal((bundle.pred_horizon, bundle.action_dim))
+                k = min(bundle.pred_horizon - 1, to - t)
+
+                def chunk(at):
+                    return bundle.act(images, w["proprio"][window], emb, noise=z, **{point: np.append(at, 1.0)})[k]
+
+                base = chunk(target)
+                off.append(float(np.linalg.norm(base[:2] - target[:2])) * 100)
+                for j, axis in enumerate("xy"):
+                    gains[axis].append(float(chunk(target + shift_m * np.eye(3)[j])[j] - base[j]) / shift_m)
     if not off:
-        raise ValueError(f"{data_dir}: no episode with a release to measure the release gain on")
+        what = "a release" if point == "release" else "a close"
+        raise ValueError(f"{data_dir}: no episode with {what} to measure the {point} gain on")
     return {"samples": len(off), "x": round(float(np.median(gains["x"])), 2),
             "y": round(float(np.median(gains["y"])), 2), "off_cm": round(float(np.median(off)), 2)}
 
@@ -129,20 +140,22 @@ def record_in_manifest(bundle_dir: Path, manifest: dict, quiet: bool) -> None:
         return
     bundle = Bundle.load(bundle_dir, intra_op_num_threads=1)
     figures = manifest["input_sensitivity"] = input_sensitivity(bundle, data)
-    gain = None
-    if bundle.release_input:
+    gains = {}
+    for point, given in (("release", bundle.release_input), ("grasp", bundle.grasp_input)):
+        if not given:
+            continue
         try:
-            gain = manifest["release_gain"] = release_gain(bundle, data)
-        except ValueError as exc:  # data without a release (the gripper never opens): nothing to measure
+            gains[point] = manifest[f"{point}_gain"] = point_gain(bundle, data, point)
+        except ValueError as exc:  # data without that event (e.g. the gripper never opens): nothing to measure
             if not quiet:
-                print(f"release gain: skipped ({exc})")
+                print(f"{point} gain: skipped ({exc})")
     (bundle_dir / "manifest.json").write_text(json.dumps(manifest, indent=2))
     if quiet:
         return
     shown = ", ".join(f"{k} {v:.1f}" for k, v in figures.items() if k not in ("samples", "unit"))
     print(f"input sensitivity (mm the executed chunk moves when one input is swapped): {shown}")
-    if gain:
-        print(f"release gain (how far the chunk follows a given release point, 1 = all the way): x {gain['x']:.2f}, "
+    for point, gain in gains.items():
+        print(f"{point} gain (how far the chunk follows a given {point} point, 1 = all the way): x {gain['x']:.2f}, "
               f"y {gain['y']:.2f}; {gain['off_cm']:.1f} cm off the recorded one at its step")
     blind = blind_cameras(figures)
     if blind:

@@ -303,39 +303,49 @@ def test_input_sensitivity_finds_the_inputs_a_policy_ignores(run, bundle):
 
 
 class _Follower(_StandIn):
-    """A stand-in that goes `gain` of the way from the recorded proprio to a given release point."""
+    """A stand-in that goes `gain` of the way from the recorded proprio to a given release (or grasp) point."""
 
-    obs_horizon, release_input = 1, True
+    obs_horizon, release_input, grasp_input = 1, True, True
 
-    def __init__(self, gain):
+    def __init__(self, gain, point="release"):
         super().__init__(set())
-        self.gain = gain
+        self.gain, self.point = gain, point
 
-    def act(self, images, proprio, emb, noise=None, rng=None, release=None):
+    def act(self, images, proprio, emb, noise=None, rng=None, release=None, grasp=None):
+        given = {"release": release, "grasp": grasp}
         a = np.zeros((self.pred_horizon, self.action_dim), np.float32)
-        a[:, :3] = (1 - self.gain) * proprio[-1, :3] + self.gain * np.asarray(release[:3])
+        a[:, :3] = proprio[-1, :3]
+        if given[self.point] is not None:  # the other point moves nothing
+            a[:, :3] = (1 - self.gain) * proprio[-1, :3] + self.gain * np.asarray(given[self.point][:3])
         return a
 
 
-def test_release_gain_says_how_far_the_chunk_follows_a_given_release_point(run, tmp_path):
+@pytest.mark.parametrize("point", ["release", "grasp"])
+def test_point_gain_says_how_far_the_chunk_follows_a_given_point(run, tmp_path, point):
     from datagen.store import ShardWriter
     from datagen.workers import synthetic_episode
-    from policy.sensitivity import release_gain
+    from policy.sensitivity import point_gain
     from policy.testing import smooth_episode
 
-    with pytest.raises(ValueError, match="no episode with a release"):  # the smooth episodes only close
-        release_gain(_Follower(1.0), run.parent / "data", episodes=4)
+    if point == "release":
+        with pytest.raises(ValueError, match="no episode with a release"):  # the smooth episodes only close
+            point_gain(_Follower(1.0), run.parent / "data", point, episodes=4)
     data = tmp_path / "data"
     with ShardWriter(data, "w0") as w:
         for seed in range(3):
             ep = synthetic_episode("stack", seed)
             smooth_episode(ep, seed)
+            ep.action[:int(0.3 * len(ep)), -1] = 0.0  # open until it closes on the object
             ep.action[int(0.8 * len(ep)):, -1] = 0.0  # let go near the end
             w.append(ep)
-    full, half = release_gain(_Follower(1.0), data, episodes=4), release_gain(_Follower(0.5), data, episodes=4)
+    full, half = (point_gain(_Follower(g, point), data, point, episodes=4) for g in (1.0, 0.5))
     assert full["samples"] > 0 and (full["x"], full["y"], full["off_cm"]) == (1.0, 1.0, 0.0)
     assert (half["x"], half["y"]) == (0.5, 0.5) and half["off_cm"] > 0
-    assert release_gain(_Follower(0.0), data, episodes=4)["x"] == 0.0
+    assert point_gain(_Follower(0.0, point), data, point, episodes=4)["x"] == 0.0
+    other = "grasp" if point == "release" else "release"  # a policy that follows only the other point
+    assert point_gain(_Follower(1.0, other), data, point, episodes=4)["x"] == 0.0
+    with pytest.raises(ValueError, match="expected 'release' or 'grasp'"):
+        point_gain(_Follower(1.0), data, "goal")
 
 
 def test_the_bundle_carries_the_gripper_levels_and_an_older_run_reads_them_from_its_data(run, bundle_dir, tmp_path):
