@@ -95,10 +95,8 @@ def point_gain(bundle, data_dir: str | Path, point: str = "release", episodes: i
         i = int(rows[int(r)]["index"])
         w = store.window(i, fields=("action", "proprio", *(f"{c}_rgb" for c in bundle.cameras)))
         shut = w["action"][:, -1] > 0.5
-        if point == "release":
-            events = (np.flatnonzero(shut[:-1] & ~shut[1:]) + 1)[-1:]
-        else:
-            events = np.flatnonzero(~shut[:-1] & shut[1:]) + 1
+        edges = np.flatnonzero(shut[1:] != shut[:-1]) + 1  # the steps where the gripper command flips
+        events = edges[shut[edges]] if point == "grasp" else edges[~shut[edges]][-1:]
         emb = bundle.embed(store.meta(i)["instruction"])
         for to in (int(e) for e in events if e >= 2):
             target = w["action"][to, :3]
