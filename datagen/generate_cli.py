@@ -23,14 +23,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                "  sudd datagen --task pick_place --episodes 100 --out out/data --workers 2\n"
                "  sudd datagen --task all --episodes 50 --out out/data --dr heavy\n"
                "  sudd datagen --task all --episodes 500 --out /shared/data --ray auto\n"
+               "  sudd datagen --task drawer_open --seeds 100003,100015,700000-700049 --out out/again\n"
                "  SUDD_LLM_API_KEY=... sudd datagen --task stack --episodes 20 --out out/llm \\\n"
                "      --planner llm --llm-url http://localhost:8000/v1 --llm-model my-model")
     gen.add_argument("--task", action="append", required=True,
                      help="task family (repeatable), or 'all' (see `sudd sim tasks`)")
-    gen.add_argument("--episodes", type=int, required=True, help="episodes per task")
+    gen.add_argument("--episodes", type=int, help="episodes per task (or give --seeds)")
     gen.add_argument("--out", type=Path, required=True, help="dataset directory (created; resumed if present)")
     gen.add_argument("--workers", type=int, default=1, help="worker processes (one shard each; default 1)")
-    gen.add_argument("--seed-offset", type=int, default=0, help="first seed; seeds are OFFSET..OFFSET+N-1")
+    gen.add_argument("--seed-offset", type=int, default=None, help="first seed; seeds are OFFSET..OFFSET+N-1 "
+                     "(default 0)")
+    gen.add_argument("--seeds", default=None, metavar="LIST|FILE",
+                     help="exactly these seeds for every task instead of --episodes/--seed-offset: e.g. "
+                          "100003,100015,700000-700199, or a file of them (one or more per line, # comments); "
+                          "to re-run an eval's failures with the collector, or a chosen part of the randomization")
     gen.add_argument("--ray", default=None, metavar="auto|ADDRESS|local",
                      help="run the workers on a Ray cluster instead of local processes")
     gen.add_argument("--dr", default="heavy", help="DR preset off|light|heavy or a TOML file (default heavy)")
@@ -71,7 +77,18 @@ def _generate(args) -> int:
     from sim.config import load_config
     from sim.tasks import get_task, task_names
 
+    from sim.seeding import parse_seeds
+
     tasks = task_names() if "all" in args.task else [get_task(t).name for t in args.task]
+    if (args.episodes is None) == (args.seeds is None) or (args.seeds is not None and args.seed_offset is not None):
+        print("sudd datagen: error: give either --episodes N (seeds --seed-offset .. +N-1) or --seeds LIST|FILE, "
+              "not both", file=sys.stderr)
+        return 2
+    try:
+        seeds = parse_seeds(args.seeds) if args.seeds is not None else None
+    except ValueError as e:
+        print(f"sudd datagen: error: --{e}", file=sys.stderr)
+        return 2
     if args.planner == "llm" and not (args.llm_url and args.llm_model):
         print("sudd datagen: error: --planner llm needs --llm-url and --llm-model", file=sys.stderr)
         return 2
@@ -81,8 +98,8 @@ def _generate(args) -> int:
         "path_noise_cm": args.path_noise_cm, "grasp_noise_cm": args.grasp_noise_cm, "handle_grasp": args.handle_grasp,
         "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
-    summary = generate(tasks, args.episodes, args.out, args.workers, partial(run_episode, cfg=cfg),
-                       seed_offset=args.seed_offset, ray_address=args.ray)
+    summary = generate(tasks, args.episodes or 0, args.out, args.workers, partial(run_episode, cfg=cfg),
+                       seed_offset=args.seed_offset or 0, ray_address=args.ray, seeds=seeds)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -22,6 +22,7 @@ import time
 import traceback
 import zlib
 from collections import deque
+from collections.abc import Sequence
 from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Callable
@@ -78,13 +79,19 @@ def _process_main(out: str, worker_id: str, episode_fn: EpisodeFn, conn) -> None
         worker.close()
 
 
-def episode_keys(tasks: list[str], episodes_per_task: int, seed_offset: int = 0) -> list[tuple[str, int]]:
-    return [(t, s) for t in tasks for s in range(seed_offset, seed_offset + episodes_per_task)]
+def episode_keys(tasks: list[str], episodes_per_task: int, seed_offset: int = 0,
+                 seeds: Sequence[int] | None = None) -> list[tuple[str, int]]:
+    """(task, seed) for every task: the given seeds, else seed_offset .. seed_offset + episodes_per_task - 1."""
+    seeds = range(seed_offset, seed_offset + episodes_per_task) if seeds is None else seeds
+    return [(t, int(s)) for t in tasks for s in seeds]
 
 
 def generate(tasks: list[str], episodes_per_task: int, out: Path, workers: int, episode_fn: EpisodeFn,
-             seed_offset: int = 0, ray_address: str | None = None, progress: bool = True) -> dict:
+             seed_offset: int = 0, ray_address: str | None = None, progress: bool = True,
+             seeds: Sequence[int] | None = None) -> dict:
     """Generate every missing (task, seed) episode into OUT; returns a summary of this run.
+
+    `seeds`, when given, are the seeds for every task instead of seed_offset's range (episodes_per_task unused).
 
     Summary: requested, skipped (already in OUT), episodes (committed by this run), successes (of those,
     meta["success"] true), errors (exceptions or dead workers: not committed, retried by the next run),
@@ -94,7 +101,7 @@ def generate(tasks: list[str], episodes_per_task: int, out: Path, workers: int, 
         raise ValueError(f"need tasks, episodes_per_task >= 0 and workers >= 1; got {tasks!r}, "
                          f"{episodes_per_task}, {workers}")
     out = Path(out)
-    keys = episode_keys(list(tasks), episodes_per_task, seed_offset)
+    keys = episode_keys(list(tasks), episodes_per_task, seed_offset, seeds)
     done, bad_shards = set(), set()
     if (out / "shards").is_dir():
         ds = Dataset(out)

@@ -10,6 +10,7 @@ contract; add new streams at the end, never in between.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -37,4 +38,26 @@ def episode_rngs(seed: int) -> EpisodeRngs:
     return EpisodeRngs(seed=int(seed), **gens)
 
 
-__all__ = ["EpisodeRngs", "episode_rngs", "STREAMS"]
+def parse_seeds(spec: str) -> tuple[int, ...]:
+    """Seeds from "100003,100015,700000-700199" (ranges inclusive), or from a file of such items, one or more per
+    line, `#` starting a comment. Order is kept and repeats dropped, so a list of failures can be re-run as is."""
+    text = spec
+    if Path(spec).is_file():
+        text = "\n".join(line.split("#", 1)[0] for line in Path(spec).read_text().splitlines())
+    seeds: list[int] = []
+    for item in text.replace(",", " ").split():
+        lo, sep, hi = item.partition("-")
+        try:
+            a, b = int(lo), int(hi if sep else lo)
+        except ValueError:
+            raise ValueError(f"seeds: {item!r} is not a seed or a range; expected non-negative integers like "
+                             "100003 or 700000-700199, comma-separated, or a file of them") from None
+        if a < 0 or b < a:
+            raise ValueError(f"seeds: {item!r}: a range runs from a non-negative seed up to one at least as large")
+        seeds.extend(range(a, b + 1))
+    if not seeds:
+        raise ValueError(f"seeds: {spec!r} names no seed; expected e.g. 100003,100015,700000-700199 or a file")
+    return tuple(dict.fromkeys(seeds))
+
+
+__all__ = ["EpisodeRngs", "episode_rngs", "parse_seeds", "STREAMS"]

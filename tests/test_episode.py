@@ -71,14 +71,26 @@ def test_sudd_datagen_writes_resumes_and_reports(tmp_path, capsys):
     assert main(args) == 0
     again = json.loads(capsys.readouterr().out)
     assert again["episodes"] == 0 and again["skipped"] == 2, "a re-run resumes, nothing is duplicated"
+    assert main(["datagen", "--task", "drawer_open", "--seeds", "0,5", "--out", str(out), "--dr", "light",
+                 "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert (listed["skipped"], listed["episodes"]) == (1, 1), "seed 0 is there, seed 5 is new"
     assert main(["data", "info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["episodes"] == 2
+    assert info["episodes"] == 3
 
 
 def test_unknown_task_in_datagen_lists_families(tmp_path, capsys):
     assert main(["datagen", "--task", "juggle", "--episodes", "1", "--out", str(tmp_path)]) == 2
     assert "pick_place" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra, says", [(["--episodes", "1", "--seeds", "3"], "not both"),
+                                         (["--seeds", "3", "--seed-offset", "5"], "not both"), ([], "either"),
+                                         (["--seeds", "3,x"], "'x' is not a seed")])
+def test_datagen_takes_a_count_or_a_seed_list(tmp_path, capsys, extra, says):
+    assert main(["datagen", "--task", "drawer_open", "--out", str(tmp_path / "d"), *extra]) == 2
+    assert says in capsys.readouterr().err and not (tmp_path / "d").exists()
 
 
 def test_perturbed_place_is_recovered_by_going_back_to_the_pick():

@@ -62,6 +62,15 @@ def test_pool_generates_every_key_once(tmp_path):
     assert stored_keys(out) == Counter(expected | {("a", 14)})
 
 
+def test_given_seeds_replace_the_range_for_every_task(tmp_path):
+    out = tmp_path / "data"
+    s = generate(["a", "b"], 0, out, workers=2, episode_fn=synthetic_episode, seeds=[7, 3], progress=False)
+    assert stored_keys(out) == Counter([("a", 7), ("a", 3), ("b", 7), ("b", 3)])
+    assert (s["requested"], s["episodes"]) == (4, 4)
+    again = generate(["a"], 0, out, workers=1, episode_fn=synthetic_episode, seeds=[3, 4], progress=False)
+    assert (again["skipped"], again["episodes"]) == (1, 1) and stored_keys(out)[("a", 4)] == 1
+
+
 def test_failing_episodes_are_counted_then_resumed(tmp_path, caplog):
     out = tmp_path / "data"
     s = generate(["a", "b"], 6, out, workers=2, episode_fn=flaky_episode, progress=False)
