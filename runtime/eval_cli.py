@@ -47,9 +47,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     ev.add_argument("--policy", required=True, metavar="BUNDLE", help="policy bundle directory (sudd export)")
     ev.add_argument("--task", action="append", default=[], help="task family (repeatable) or 'all' (the bundle's "
                                                                 "tasks; default)")
-    ev.add_argument("--episodes", type=int, default=20, help="episodes per task and suite (default 20)")
+    ev.add_argument("--episodes", type=int, default=None, help="episodes per task and suite (default 20)")
     ev.add_argument("--dr", default="heavy", help="DR preset off|light|heavy or a TOML file (default heavy)")
-    ev.add_argument("--seed-offset", type=int, default=100_000, help="first seed (default 100000)")
+    ev.add_argument("--seed-offset", type=int, default=None, help="first seed (default 100000)")
+    ev.add_argument("--seeds", default=None, metavar="LIST|FILE",
+                    help="exactly these seeds for every task instead of --episodes/--seed-offset: e.g. "
+                         "100003,100015,100240-100259, or a file of them (one or more per line, # comments); to "
+                         "re-run a bundle's failures, or a chosen part of the randomization")
     ev.add_argument("--suite", action="append", default=[], choices=["seen", "heldout", "paraphrase"],
                     help="what to test (repeatable; default: seen)")
     ev.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
@@ -98,12 +102,18 @@ def _eval(args) -> int:
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from policy.phased import resolve_phased
     from runtime.pace import check_speed_spec, resolve_pace
+    from sim.seeding import parse_seeds
     from sim.tasks import get_task
 
     if args.latency_ms is not None and not 0.0 <= args.latency_ms < 1000.0:
         raise ValueError(f"--latency-ms {args.latency_ms}: expected 0 <= MS < 1000 (the simulated inference lag of "
                          "one chunk); leave it out to use the measured time")
     check_speed_spec(args.speed)
+    if args.seeds is not None and (args.episodes is not None or args.seed_offset is not None):
+        raise ValueError("--seeds names the episodes itself; leave out --episodes and --seed-offset with it")
+    seed_offset = 100_000 if args.seed_offset is None else args.seed_offset
+    seeds = (list(parse_seeds(args.seeds)) if args.seeds is not None
+             else list(range(seed_offset, seed_offset + (20 if args.episodes is None else args.episodes))))
     if args.realtime and (args.latency_ms is not None or args.filmstrips):
         raise ValueError("--realtime: the lag is the stack's own and there are no filmstrips of it; leave out "
                          "--latency-ms and --filmstrips (they are for the lockstep eval)")
@@ -126,9 +136,8 @@ def _eval(args) -> int:
     jobs = []  # seed-major: an eval stopped early (Ctrl-C, a deadline) has every task at about as many seeds
     mode = "realtime" if args.realtime else "lockstep"
     for suite in suites:
-        for i in range(args.episodes):
+        for seed in seeds:
             for task in tasks:
-                seed = args.seed_offset + i
                 jobs.append({"suite": suite, "task": task, "seed": seed, "who": "policy", "mode": mode})
                 if not args.no_collector and suite != "paraphrase":
                     jobs.append({"suite": suite, "task": task, "seed": seed, "who": "collector",
@@ -174,8 +183,8 @@ def _eval(args) -> int:
                   "target_not_placed: held the named object, no success; closest approach: how near the TCP came to "
                   "the named object in the no_grasp episodes; yaw off: the gripper's yaw from the named object's grasp "
                   "yaw when it closed, modulo the object's symmetry):\n\n" + why)
-    summary = {"settings": settings, "suites": suites, "tasks": tasks, "episodes": args.episodes,
-               "seed_offset": args.seed_offset, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
+    summary = {"settings": settings, "suites": suites, "tasks": tasks, "episodes": len(seeds),
+               "seed_offset": seeds[0], "seeds": seeds, "wall_s": round(time.perf_counter() - t0, 1), "rows": rows,
                "bundle": bundle.info(), "versions": library_versions()}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
     if bundle.goal_query is None:

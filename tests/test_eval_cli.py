@@ -32,6 +32,21 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
 
 
+def test_eval_cli_runs_exactly_the_listed_seeds(untrained_bundle, tmp_path, capsys):
+    from runtime.cli import main
+
+    base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--no-collector",
+            "--time-limit-factor", "0.03"]
+    assert main([*base, "--seeds", "100007,100003", "--out", str(tmp_path / "a")]) == 0
+    got = [json.loads(x)["seed"] for x in (tmp_path / "a" / "results.jsonl").read_text().splitlines()]
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert got == [100007, 100003] and summary["seeds"] == got and summary["episodes"] == 2
+    assert main([*base, "--seeds", "100007", "--episodes", "3", "--out", str(tmp_path / "b")]) == 2
+    assert main([*base, "--seeds", "1x", "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "leave out --episodes" in err and "'1x' is not a seed" in err
+
+
 @pytest.fixture
 def episode_kwargs(monkeypatch) -> list[dict]:
     """The keyword arguments of every run_policy_episode call the eval CLI makes (the episodes still run)."""
