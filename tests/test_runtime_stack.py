@@ -106,7 +106,9 @@ def test_end_to_end_refusal_and_malformed_chunks(bundle):
     # frames and chunks flowed, the controller executed them through safety and the arm moved
     assert w.frames >= 10 and min(rob["frames_published"].values()) >= 10
     assert pol["chunks"] >= 10 and pol["accepted"] == 1 and pol["refused"] == 1
-    assert rob["chunks_accepted"] >= 8 and rob["servo_sent"] > 500 and rob["moved_rad"] > 1e-4, rob
+    # servo commands streamed while the chunks ran (14 chunks are ~1.4 s, ~700 at 500 Hz; a loaded 2-core machine
+    # sent 442 on 2026-12-03): the floor catches a controller that stopped streaming, the rate is sudd bench's
+    assert rob["chunks_accepted"] >= 8 and rob["servo_sent"] > 100 and rob["moved_rad"] > 1e-4, rob
     # malformed payloads were dropped at the bus edge: counted, never submitted
     assert set(rob["chunk_decode_errors"]) == {"truncated", "non_finite", "bad_version"}, rob["chunk_decode_errors"]
     assert rob["events"].get("chunk_malformed", 0) == 0
