@@ -75,20 +75,11 @@ def _generate(args) -> int:
     from datagen.episode import DatagenConfig, run_episode
     from datagen.workers import generate
     from sim.config import load_config
+    from sim.seeding import resolve_seeds
     from sim.tasks import get_task, task_names
 
-    from sim.seeding import parse_seeds
-
     tasks = task_names() if "all" in args.task else [get_task(t).name for t in args.task]
-    if (args.episodes is None) == (args.seeds is None) or (args.seeds is not None and args.seed_offset is not None):
-        print("sudd datagen: error: give either --episodes N (seeds --seed-offset .. +N-1) or --seeds LIST|FILE, "
-              "not both", file=sys.stderr)
-        return 2
-    try:
-        seeds = parse_seeds(args.seeds) if args.seeds is not None else None
-    except ValueError as e:
-        print(f"sudd datagen: error: --{e}", file=sys.stderr)
-        return 2
+    seeds = resolve_seeds(args.seeds, args.episodes, args.seed_offset, default_episodes=None, default_offset=0)
     if args.planner == "llm" and not (args.llm_url and args.llm_model):
         print("sudd datagen: error: --planner llm needs --llm-url and --llm-model", file=sys.stderr)
         return 2
@@ -98,8 +89,8 @@ def _generate(args) -> int:
         "path_noise_cm": args.path_noise_cm, "grasp_noise_cm": args.grasp_noise_cm, "handle_grasp": args.handle_grasp,
         "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
-    summary = generate(tasks, args.episodes or 0, args.out, args.workers, partial(run_episode, cfg=cfg),
-                       seed_offset=args.seed_offset or 0, ray_address=args.ray, seeds=seeds)
+    summary = generate(tasks, len(seeds), args.out, args.workers, partial(run_episode, cfg=cfg),
+                       ray_address=args.ray, seeds=seeds)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

@@ -102,18 +102,15 @@ def _eval(args) -> int:
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from policy.phased import resolve_phased
     from runtime.pace import check_speed_spec, resolve_pace
-    from sim.seeding import parse_seeds
+    from sim.seeding import resolve_seeds
     from sim.tasks import get_task
 
     if args.latency_ms is not None and not 0.0 <= args.latency_ms < 1000.0:
         raise ValueError(f"--latency-ms {args.latency_ms}: expected 0 <= MS < 1000 (the simulated inference lag of "
                          "one chunk); leave it out to use the measured time")
     check_speed_spec(args.speed)
-    if args.seeds is not None and (args.episodes is not None or args.seed_offset is not None):
-        raise ValueError("--seeds names the episodes itself; leave out --episodes and --seed-offset with it")
-    seed_offset = 100_000 if args.seed_offset is None else args.seed_offset
-    seeds = (list(parse_seeds(args.seeds)) if args.seeds is not None
-             else list(range(seed_offset, seed_offset + (20 if args.episodes is None else args.episodes))))
+    seeds = list(resolve_seeds(args.seeds, args.episodes, args.seed_offset, default_episodes=20,
+                               default_offset=100_000))
     if args.realtime and (args.latency_ms is not None or args.filmstrips):
         raise ValueError("--realtime: the lag is the stack's own and there are no filmstrips of it; leave out "
                          "--latency-ms and --filmstrips (they are for the lockstep eval)")

@@ -60,4 +60,22 @@ def parse_seeds(spec: str) -> tuple[int, ...]:
     return tuple(dict.fromkeys(seeds))
 
 
-__all__ = ["EpisodeRngs", "episode_rngs", "parse_seeds", "STREAMS"]
+def resolve_seeds(seeds: str | None, episodes: int | None, seed_offset: int | None,
+                  default_episodes: int | None, default_offset: int) -> tuple[int, ...]:
+    """The seeds a command line names: `--seeds LIST|FILE`, or `--episodes N` from `--seed-offset` (each falling
+    back to its default; default_episodes None: the count must be given)."""
+    if seeds is not None:
+        if episodes is not None or seed_offset is not None:
+            raise ValueError("--seeds names the episodes itself, not both: leave out --episodes and --seed-offset "
+                             "with it")
+        return parse_seeds(seeds)
+    n = default_episodes if episodes is None else episodes
+    if n is None:
+        raise ValueError("give either --episodes N (seeds --seed-offset .. +N-1) or --seeds LIST|FILE")
+    if n < 1:
+        raise ValueError(f"--episodes {n}: expected at least 1 episode per task")
+    offset = default_offset if seed_offset is None else seed_offset
+    return tuple(range(offset, offset + n))
+
+
+__all__ = ["EpisodeRngs", "episode_rngs", "parse_seeds", "resolve_seeds", "STREAMS"]

@@ -2,7 +2,7 @@
 
 import pytest
 
-from sim.seeding import parse_seeds
+from sim.seeding import parse_seeds, resolve_seeds
 
 
 def test_items_and_inclusive_ranges_keep_their_order_without_repeats():
@@ -21,3 +21,11 @@ def test_bad_lists_name_the_item(spec, names):
     with pytest.raises(ValueError, match="seeds") as e:
         parse_seeds(spec)
     assert names in str(e.value)
+
+
+def test_a_command_line_names_a_count_from_an_offset_or_a_list():
+    assert resolve_seeds(None, 3, None, default_episodes=20, default_offset=100) == (100, 101, 102)
+    assert resolve_seeds(None, None, 7, default_episodes=2, default_offset=100) == (7, 8)
+    assert resolve_seeds("5,2", None, None, default_episodes=None, default_offset=0) == (5, 2)
+    with pytest.raises(ValueError, match="at least 1"):
+        resolve_seeds(None, 0, None, default_episodes=20, default_offset=0)
