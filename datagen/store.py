@@ -104,6 +104,16 @@ def episode_hash(arrays: dict[str, np.ndarray], meta: dict) -> str:
     return h.hexdigest()
 
 
+def episode_key(meta: dict) -> tuple:
+    """What names an episode in a store, once: (task, seed) for a collected one. A phase cut from one
+    (policy.phase_data, meta["phase_of"]) keeps its source's seed and may keep its family too (drawer_put's
+    middle cycle), so its key adds the phase: (task, seed, phase)."""
+    cut = meta.get("phase_of")
+    if cut is None:
+        return meta["task"], int(meta["seed"])
+    return meta["task"], int(meta["seed"]), int(cut["phase"])
+
+
 def committed(group: zarr.Group, name: str) -> tuple[np.ndarray, list[dict]]:
     """The committed episodes of a shard group: (episode_ends, parsed metas). Raises StoreError if corrupt.
 
@@ -195,7 +205,7 @@ class ShardWriter:
         ends, metas = committed(g, self.name)
         has_data = "data" in g and all(k in g["data"] for k in STEP_ARRAYS)
         self.steps = int(ends[-1]) if len(ends) else 0
-        self.keys = {(m["task"], int(m["seed"])) for m in metas}
+        self.keys = {episode_key(m) for m in metas}
         g["meta/episodes"].resize((len(ends),))
         g["meta/episode_ends"].resize((len(ends),))
         if has_data:
@@ -212,7 +222,7 @@ class ShardWriter:
         """Write one episode and commit it; returns its index in this shard."""
         ep.validate()
         arrays = step_arrays(ep)
-        key = (ep.meta["task"], int(ep.meta["seed"]))
+        key = episode_key(ep.meta)
         if key in self.keys:
             raise StoreError(f"shard {self.name} already holds episode {key}")
         T = len(ep)
@@ -297,14 +307,10 @@ class Dataset:
         self._index = [(name, i) for name, (_, _, metas) in self.shards.items() for i in range(len(metas))]
         seen: dict[tuple, str] = {}
         for name, i in self._index:
-            key = self._key(self.shards[name][2][i])
+            key = episode_key(self.shards[name][2][i])
             if key in seen:
                 warnings.warn(f"episode {key} is in both shard {seen[key]} and shard {name}", RuntimeWarning)
             seen.setdefault(key, name)
-
-    @staticmethod
-    def _key(meta: dict) -> tuple[str, int]:
-        return meta["task"], int(meta["seed"])
 
     def __len__(self) -> int:
         return len(self._index)
@@ -352,9 +358,9 @@ class Dataset:
             for t in range(self.meta(i)["_length"]):
                 yield dict({f: arrays[f][t] for f in fields}, episode=i, step=t)
 
-    def completed_keys(self) -> set[tuple[str, int]]:
-        """The (task, seed) pairs committed so far: what a resumed generation run skips."""
-        return {self._key(self.meta(i)) for i in range(len(self))}
+    def completed_keys(self) -> set[tuple]:
+        """The episode keys (`episode_key`) committed so far: a resumed generation run skips these."""
+        return {episode_key(self.meta(i)) for i in range(len(self))}
 
     def _verify(self, name: str) -> None:
         group, ends, metas = self.shards[name]
@@ -380,7 +386,7 @@ class Dataset:
     def merge(self, out_dir: str | Path, shard: str = "merged", progress=None, tasks=None) -> Path:
         """Copy every episode (of `tasks`, if given) into one shard OUT/shards/<shard>.zarr (readable with Dataset).
 
-        Duplicated (task, seed) pairs are written once; re-running an interrupted merge continues it.
+        Duplicated episode keys (`episode_key`) are written once; re-running an interrupted merge continues it.
         `progress`, if given, is called once per episode of this dataset (copied, already there or left out).
         """
         out_dir = Path(out_dir)
@@ -389,7 +395,7 @@ class Dataset:
         with ShardWriter(out_dir, shard) as writer:
             for i in range(len(self)):
                 m = self.meta(i)
-                if (tasks is None or m["task"] in tasks) and self._key(m) not in writer.keys:
+                if (tasks is None or m["task"] in tasks) and episode_key(m) not in writer.keys:
                     writer.append(self.episode(i))
                 if progress is not None:
                     progress()

@@ -164,17 +164,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "cut to a phase that runs another family's skill, into OUT as an episode of that family\n"
                     "with the phase's text (policy/phase_data.py): drawer_put's closing cycle, from the step\n"
                     "the object is let go (where the runtime switches phase), as a \"close the drawer\"\n"
-                    "episode of drawer_close, the object in the drawer. Merge OUT into the training data.\n"
+                    "episode of drawer_close, the object in the drawer. A phase of the family itself with a\n"
+                    "text of its own (policy.phased.OWN_PHASE_TEXT) is cut when asked (--phase drawer_put:1:\n"
+                    "\"pick up the red block and put it in the open drawer\"); a bundle trained on it runs that\n"
+                    "phase under that text. Merge OUT into the training data.\n"
                     "Re-running continues; an episode whose grasp cycles and subtask labels disagree is skipped.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n  sudd cut-phases out/data_dput --out out/data_dput_phases             # every skill phase\n"
-               "  sudd cut-phases out/data_dput --phase drawer_put:2 --out out/data_close   # the closing only\n"
+               "  sudd cut-phases out/data_dput --phase drawer_put:2 --out out/data_close   # the closing only\n"               "  sudd cut-phases out/data_dput --phase drawer_put:0 --phase drawer_put:1 --phase drawer_put:2 \\\n"
+               "      --out out/data_dput_all                                              # the middle cycle too\n"
                "  sudd data merge out/data_reh out/data_close --out out/data_ft")
     cut.add_argument("source", type=Path, metavar="SRC", help="episode dataset directory")
     cut.add_argument("--out", type=Path, required=True, help="the new dataset's directory")
     cut.add_argument("--phase", action="append", default=None, metavar="FAMILY:K",
                      help="cut phase K (0-based, a count of grasp cycles) of FAMILY; repeatable (default: every "
-                          "phase with its own text)")
+                          "phase that runs another family's skill)")
     cut.set_defaults(func=_cut_phases)
 
     from policy.export_cli import register as register_export

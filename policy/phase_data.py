@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from datagen.schema import EpisodeData, episode_success
-from datagen.store import Dataset, ShardWriter, StoreError
-from policy.phased import PHASED
+from datagen.store import Dataset, ShardWriter, StoreError, episode_key
+from policy.phased import OWN_PHASE_TEXT, PHASED, own_phase_text
 from policy.stage import GRIPPER_COLUMN, commands_in_effect, cycles_per_step
 
 MIN_STEPS = 8  # a phase shorter than this (0.8 s) is not a demonstration of its skill
@@ -36,6 +36,11 @@ class CutReport:
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
+
+
+def cuttable_phases(family: str) -> list[int]:
+    """Every phase of `family` with a text: the skill phases and those with a text of their own."""
+    return sorted({*skill_phases(family), *OWN_PHASE_TEXT.get(family, {})})
 
 
 def skill_phases(family: str) -> list[int]:
@@ -60,11 +65,16 @@ def phase_span(action: np.ndarray, proprio: np.ndarray, phase: int, last: bool) 
 
 
 def cut_episode(ep: EpisodeData, phase: int) -> EpisodeData | str:
-    """Episode `ep` (of a phased family) cut to its phase `phase`, labelled with that phase's text and family;
+    """Episode `ep` (of a phased family) cut to its phase `phase`, labelled with that phase's text and family
+    (a phase of the family itself: its own text, policy.phased.OWN_PHASE_TEXT, with the episode's object);
     or the reason it cannot be (a string)."""
     family = ep.meta["task"]
     table = PHASED[family]
     text, skill = table[phase]
+    if text is None:
+        text = own_phase_text(family, phase, ep.meta["instruction"])
+        if text is None:
+            return f"phase {phase}: no object named in the instruction"
     span = phase_span(ep.action, ep.proprio, phase, last=phase == len(table) - 1)
     if span is None:
         return f"phase {phase} never reached"
@@ -106,7 +116,7 @@ def cut_phases(source: str | Path, out: str | Path, phases: dict[str, list[int]]
                     cut = cut_episode(ep, k)
                     if isinstance(cut, str):
                         report.skip(cut)
-                    elif (cut.meta["task"], int(cut.meta["seed"])) not in writer.keys:
+                    elif episode_key(cut.meta) not in writer.keys:
                         writer.append(cut)
                         report.written[cut.meta["task"]] = report.written.get(cut.meta["task"], 0) + 1
             if progress is not None:
@@ -127,8 +137,8 @@ def parse_phase_args(items: list[str] | None) -> dict[str, list[int]] | None:
         n = len(PHASED[family])
         if not k.isdigit() or int(k) >= n:
             raise ValueError(f"--phase {item!r}: expected FAMILY:K with K in 0..{n - 1}")
-        if PHASED[family][int(k)][0] is None:
-            raise ValueError(f"--phase {item!r}: phase {k} of {family} is the command itself, not another skill; "
-                             f"skill phases: {skill_phases(family)}")
+        if PHASED[family][int(k)][0] is None and int(k) not in OWN_PHASE_TEXT.get(family, {}):
+            raise ValueError(f"--phase {item!r}: phase {k} of {family} is the command itself, with no text of its "
+                             f"own; phases with a text: {cuttable_phases(family)}")
         out.setdefault(family, []).append(int(k))
     return out

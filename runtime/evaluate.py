@@ -114,7 +114,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         command = family.paraphrase(inst, np.random.default_rng([seed, 7]))
     text = command or ep.instruction
     emb = bundle.embed(text)
-    sequencer = Sequencer(phases, bundle.embed, emb) if phases else None
+    sequencer = Sequencer(phases, bundle.embed, emb, text) if phases else None
     query = GoalQuery(bundle, text, task, enabled=goal_query)
     objects = ObjectQuery(bundle, text, task, enabled=goal_query)
     rng = np.random.default_rng([seed, 11])

@@ -69,8 +69,30 @@ def test_cut_phases_writes_verified_closing_cycles_and_continues(tmp_path):
     assert both.written == {"drawer_open": 2, "drawer_close": 2}
 
 
+def test_the_middle_cycle_is_cut_under_its_own_text_beside_its_source(tmp_path):
+    cut = cut_episode(drawer_put_episode(3), 1)
+    assert cut.meta["task"] == "drawer_put"
+    assert cut.meta["instruction"] == "pick up the red block and put it in the open drawer"
+    assert (cut.meta["phase_of"]["start"], cut.meta["phase_of"]["stop"]) == (17, 43)
+    np.testing.assert_array_equal(cut.action, drawer_put_episode(3).action[17:43])
+    unnamed = drawer_put_episode(4)
+    unnamed.meta["instruction"] = "tidy up"
+    assert cut_episode(unnamed, 1) == "phase 1: no object named in the instruction"
+    # the cut keeps its source's family and seed: both live in one merged store, keyed apart by the phase
+    with ShardWriter(tmp_path / "src", "w0") as w:
+        w.append(drawer_put_episode(3))
+    report = cut_phases(tmp_path / "src", tmp_path / "cut", parse_phase_args(["drawer_put:1", "drawer_put:2"]))
+    assert report.written == {"drawer_put": 1, "drawer_close": 1}
+    for d in ("src", "cut"):
+        Dataset(tmp_path / d).merge(tmp_path / "merged")
+    merged = Dataset(tmp_path / "merged")
+    assert sorted(merged.meta(i)["instruction"] for i in range(len(merged))) == [
+        "close the drawer", "pick up the red block and put it in the open drawer",
+        "put the red block in the drawer and close it"]
+
+
 @pytest.mark.parametrize("arg, says", [("stack:1", "has no phases"), ("drawer_put:3", "K in 0..2"),
-                                       ("drawer_put:x", "K in 0..2"), ("drawer_put:1", "the command itself")])
+                                       ("drawer_put:x", "K in 0..2")])
 def test_bad_phase_arguments_are_named(arg, says):
     with pytest.raises(ValueError, match=says):
         parse_phase_args([arg])

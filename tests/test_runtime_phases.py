@@ -18,6 +18,28 @@ def test_drawer_put_is_open_take_close_at_each_skills_pace():
         phases_for("pick_place", Pace({}))
 
 
+def test_a_bundle_taught_the_middle_cycles_own_text_runs_that_phase_under_it():
+    from policy.phased import command_object
+    from runtime.phases import Sequencer
+
+    pace = Pace({"drawer_close": 0.5})
+    plain = ["put the red block in the drawer and close it", "close the drawer"]
+    assert phases_for("drawer_put", pace, plain)[1] == Phase(None, 1.0)  # never taught: the command, as before
+    taught = phases_for("drawer_put", pace, plain + ["pick up the green cylinder and put it in the open drawer"])
+    assert taught[1] == Phase("pick up the {obj} and put it in the open drawer", 1.0)
+    seq = Sequencer(taught, lambda t: f"emb({t})", "emb(command)", PUT)
+    seq.update(1)
+    # the command's object, a colour the bundle never saw included
+    assert seq.embedding == "emb(pick up the blue block and put it in the open drawer)" and seq.stage(1) == 1
+    assert seq.describe(PUT) == "phase 2 of 3: 'pick up the blue block and put it in the open drawer' at speed 1"
+    free = Sequencer(taught, lambda t: f"emb({t})", "emb(command)", "tidy the table into the cabinet")
+    free.update(1)
+    assert free.embedding == "emb(command)"  # no object named: the command itself
+    assert [command_object(c) for c in ("could you stow the purple bar in the drawer and close it",
+                                        "store the  red block into a drawer", "open the drawer")] == \
+        ["purple bar", "red block", None]
+
+
 class _Counting:
     """policy.stage.GraspCycles as a stand-in: one more cycle every `every` ticks."""
 
