@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from datagen.store import Dataset, StoreError, shard_dir
+from datagen.store import Dataset, StoreError, episode_key, shard_dir
 
 
 def merge_datasets(sources: list[Dataset], out: str | Path, progress=None, tasks=None) -> Dataset:
     """Copy every episode of the `sources` datasets (of `tasks` only, if given: a list of task names) into
     OUT/shards/merged.zarr and return OUT as a Dataset.
 
-    A (task, seed) pair recorded with different content in two sources, or in a source and what OUT already
+    An episode key (task, seed; a phase cut's adds its phase: datagen.store.episode_key) recorded with different content in two sources, or in a source and what OUT already
     holds (a merge continued, or more datasets added to it), is refused with a StoreError before anything is
     copied; identical copies are written once. `progress`, if given, is called once per source episode.
     """
@@ -20,13 +20,13 @@ def merge_datasets(sources: list[Dataset], out: str | Path, progress=None, tasks
         raise StoreError(f"--out {out} is one of the sources: merge into a new directory")
     # what OUT already holds counts whole; the sources only with the tasks that will be copied
     there = [(f"--out {out}", Dataset(out), None)] if shard_dir(out).is_dir() else []
-    owner: dict[tuple, tuple[str, str]] = {}  # (task, seed) -> (where, content hash)
+    owner: dict[tuple, tuple[str, str]] = {}  # episode key -> (where, content hash)
     for where, ds, only in there + [(str(ds.root), ds, tasks) for ds in sources]:
         for i in range(len(ds)):
             m = ds.meta(i)
             if only is not None and m["task"] not in only:
                 continue
-            key, h = (m["task"], int(m["seed"])), m["_sha256"]
+            key, h = episode_key(m), m["_sha256"]
             if key in owner and owner[key][1] != h:
                 raise StoreError(f"episode {key} differs between {owner[key][0]} and {where}: merge datasets of "
                                  "different seeds, or leave one of them out")

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from datagen.merge import merge_datasets
 from datagen.store import Dataset, ShardWriter
 from datagen.workers import synthetic_episode
 from policy.phase_data import cut_episode, cut_phases, parse_phase_args, phase_span
@@ -83,9 +84,7 @@ def test_the_middle_cycle_is_cut_under_its_own_text_beside_its_source(tmp_path):
         w.append(drawer_put_episode(3))
     report = cut_phases(tmp_path / "src", tmp_path / "cut", parse_phase_args(["drawer_put:1", "drawer_put:2"]))
     assert report.written == {"drawer_put": 1, "drawer_close": 1}
-    for d in ("src", "cut"):
-        Dataset(tmp_path / d).merge(tmp_path / "merged")
-    merged = Dataset(tmp_path / "merged")
+    merged = merge_datasets([Dataset(tmp_path / "src"), Dataset(tmp_path / "cut")], tmp_path / "merged")
     assert sorted(merged.meta(i)["instruction"] for i in range(len(merged))) == [
         "close the drawer", "pick up the red block and put it in the open drawer",
         "put the red block in the drawer and close it"]
