@@ -26,6 +26,11 @@ from policy.phased import OWN_PHASE_TEXT, PHASED, own_phase_text
 from policy.stage import GRIPPER_COLUMN, commands_in_effect, cycles_per_step
 
 MIN_STEPS = 8  # a phase shorter than this (0.8 s) is not a demonstration of its skill
+# Steps a phase under a text of its own (policy.phased.OWN_PHASE_TEXT) runs on past its switch. Why: a window's
+# "now" stops Tp - Ta + 1 steps before an episode's end (policy.data), so a cut that ends at the object's release
+# never shows the frames over the drawer as "now", and no other episode carries that text: the first such bundle
+# held the object over the drawer and never let go (policy/EXPERIMENTS.md). 16 = the prediction horizon.
+OWN_TEXT_TAIL = 16
 
 
 @dataclass
@@ -71,7 +76,8 @@ def cut_episode(ep: EpisodeData, phase: int) -> EpisodeData | str:
     family = ep.meta["task"]
     table = PHASED[family]
     text, skill = table[phase]
-    if text is None:
+    own = text is None
+    if own:
         text = own_phase_text(family, phase, ep.meta["instruction"])
         if text is None:
             return f"phase {phase}: no object named in the instruction"
@@ -79,6 +85,8 @@ def cut_episode(ep: EpisodeData, phase: int) -> EpisodeData | str:
     if span is None:
         return f"phase {phase} never reached"
     a, b = span
+    if own:
+        b = min(b + OWN_TEXT_TAIL, len(ep))
     # a re-grasp (of a slipping handle, say) counts a cycle early: the phase would begin inside another subtask
     labels = list(ep.meta.get("subtasks") or [])
     if text in labels:
