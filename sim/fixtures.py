@@ -18,8 +18,8 @@ import numpy as np
 from sim.robot import ARM_BODIES
 
 Box = tuple[float, float, float, float, float, float]  # (xmin, ymin, zmin, xmax, ymax, zmax), base frame
-OVERHANG = 0.005  # m: how far a turned geom's boxes may stand off its faces
-MAX_PIECES = 16
+OVERHANG = 0.005  # m: how far a turned geom's boxes may stand off its faces, per tilted axis
+MAX_CUTS = 8  # pieces along one axis at most (a 0.28 m panel at the cabinet's 0.2 rad needs 6)
 
 
 def fixture_boxes(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[Box, ...]:
@@ -43,18 +43,24 @@ def fixture_boxes(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[Box, ...]
 
 
 def _pieces(R: np.ndarray, half: np.ndarray):
-    """(centre, half) pieces of a box, in its own frame, cut along its longest axis so that a turned panel's
-    world-aligned boxes stand at most OVERHANG off its faces. Why: one box around a cabinet's side panel turned
-    by 10 degrees is 5 cm thick, and reaches into the drawer the arm has to put things in."""
-    thin, long = int(np.argmin(half)), int(np.argmax(half))
-    across = int(np.argmax(np.abs(R[:, thin])))  # the world axis the panel's thickness mostly lies along
-    n = min(MAX_PIECES, max(1, int(np.ceil(abs(R[across, long]) * half[long] / OVERHANG))))
-    ph = half.copy()
-    ph[long] /= n
-    for k in range(n):
-        pc = np.zeros(3)
-        pc[long] = -half[long] + (2 * k + 1) * ph[long]
-        yield pc, ph
+    """(centre, half) pieces of a box, in its own frame: a grid cut along each of its axes that the turn tilts
+    off the world's, so that every piece's world-aligned box stands at most about OVERHANG (per tilted axis) off
+    the turned box. Why every axis: one box around a cabinet's side panel turned by 10 degrees is 5 cm thick and
+    reaches into the drawer the arm has to put things in; one box around its top or bottom panel, flat and
+    turned in yaw, reaches up to 4 cm in front of the drawer's face at 0.17 rad, right where the fingers come
+    down to the handle: the guard held them there until the episode timed out (policy/EXPERIMENTS.md, "The
+    guard's phantom overhang at the cabinet's front")."""
+    counts = []
+    for k in range(3):
+        col = np.abs(R[:, k])
+        lean = float(col.sum() - col.max())  # how far a unit along this axis reaches off its nearest world axis
+        counts.append(min(MAX_CUTS, max(1, int(np.ceil(lean * half[k] / OVERHANG)))))
+    ph = half / np.array(counts)
+    for i in range(counts[0]):
+        for j in range(counts[1]):
+            for k in range(counts[2]):
+                pc = -half + (2 * np.array([i, j, k]) + 1) * ph
+                yield pc, ph.copy()
 
 
 __all__ = ["Box", "fixture_boxes"]
