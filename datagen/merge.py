@@ -11,9 +11,10 @@ def merge_datasets(sources: list[Dataset], out: str | Path, progress=None, tasks
     """Copy every episode of the `sources` datasets (of `tasks` only, if given: a list of task names) into
     OUT/shards/merged.zarr and return OUT as a Dataset.
 
-    An episode key (task, seed; a phase cut's adds its phase: datagen.store.episode_key) recorded with different content in two sources, or in a source and what OUT already
-    holds (a merge continued, or more datasets added to it), is refused with a StoreError before anything is
-    copied; identical copies are written once. `progress`, if given, is called once per source episode.
+    An episode key (datagen.store.episode_key) recorded with different content in two sources, or in a source
+    and what OUT already holds (a merge continued, or more datasets added to it), is refused with a StoreError
+    before anything is copied; identical copies are written once. `progress`, if given, is called once per
+    source episode.
     """
     out = Path(out)
     if any(ds.root.resolve() == out.resolve() for ds in sources):

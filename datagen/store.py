@@ -105,13 +105,10 @@ def episode_hash(arrays: dict[str, np.ndarray], meta: dict) -> str:
 
 
 def episode_key(meta: dict) -> tuple:
-    """What names an episode in a store, once: (task, seed) for a collected one. A phase cut from one
-    (policy.phase_data, meta["phase_of"]) keeps its source's seed and may keep its family too (drawer_put's
-    middle cycle), so its key adds the phase: (task, seed, phase)."""
+    """(task, seed) names an episode in a store; a phase cut (policy.phase_data) keeps its source's seed, and maybe
+    its family, so its key adds the phase."""
     cut = meta.get("phase_of")
-    if cut is None:
-        return meta["task"], int(meta["seed"])
-    return meta["task"], int(meta["seed"]), int(cut["phase"])
+    return (meta["task"], int(meta["seed"])) + (() if cut is None else (int(cut["phase"]),))
 
 
 def committed(group: zarr.Group, name: str) -> tuple[np.ndarray, list[dict]]:

@@ -227,7 +227,7 @@ def _job(seed: int) -> dict:
     else:
         points = DrawerPutPoints if s["task"] == "drawer_put" else TruePoints
         policy.truth = points(offsets, s["bias_cm"], seed, s["task"])
-    phases = phases_for(s["task"], Pace(s["pace"]), s.get("instructions", ())) if s["phases"] else None
+    phases = phases_for(s["task"], Pace(s["pace"]), s["instructions"]) if s["phases"] else None
     t0 = time.perf_counter()
     out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
                              time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"], phases=phases,
