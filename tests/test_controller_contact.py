@@ -104,6 +104,20 @@ def test_free_space_leaves_the_target_untouched_and_a_push_moves_the_tcp_along_i
     assert np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1)) < 1e-3  # only the position gives way
 
 
+def test_up_only_gives_way_to_a_press_from_above_and_not_to_a_drawer_pull(kin):
+    cfg = ControllerConfig(contact_yield_n=40.0, contact_yield_axes="up")
+    q = np.array([0.3, -1.6, 1.7, -1.7, -1.57, 0.2])
+    pull = ContactYield(cfg, kin, 0.002)  # a drawer resisting the pull: 100 N towards the cabinet, level
+    for _ in range(50):
+        out, _ = pull.apply(q, np.array([0.0, 100.0, -10.0, 0.0, 0.0, 0.0]))
+    assert out is q and not pull.offset.any()
+    press = ContactYield(cfg, kin, 0.002)  # a finger on a cabinet's top: pushed up and back
+    for _ in range(50):
+        out, _ = press.apply(q, np.array([-150.0, -96.0, 148.0, 0.0, 0.0, 0.0]))
+    moved = kin.fk(out)[:3, 3] - kin.fk(q)[:3, 3]
+    assert moved[2] > 0.005 and abs(moved[0]) + abs(moved[1]) < 5e-4  # only up, however the force leans
+
+
 def test_the_offset_is_capped_and_returns_at_the_return_speed(kin):
     cfg = ControllerConfig(contact_yield_n=40.0, contact_max_offset=0.01, contact_return_speed=0.02)
     y = ContactYield(cfg, kin, 0.002)

@@ -55,6 +55,8 @@ class ContactYield:
         if not self.enabled or tcp_force is None:
             return desired_q, None
         f = np.asarray(tcp_force, dtype=float)[:3]
+        if self.cfg.contact_yield_axes == "up":
+            f = np.array([0.0, 0.0, max(float(f[2]), 0.0)])
         mag = float(math.sqrt(f @ f)) if np.all(np.isfinite(f)) else 0.0
         cfg = self.cfg
         if mag <= 0.5 * cfg.contact_yield_n and not self.offset.any():
