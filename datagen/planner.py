@@ -20,7 +20,7 @@ from sim.colors import COLOR_CLASSES
 
 DEFAULT_CACHE_DIR = Path(os.environ.get("SUDD_CACHE", Path.home() / ".cache" / "sudd")) / "llm"
 
-_VERB = r"(?:put|place|move|drop|set|stack|store|toss|throw|transfer|insert|stick)"
+_VERB = r"(?:put|place|move|drop|set|stack|store|stow|toss|throw|transfer|insert|stick)"
 _PREP = r"(?:inside of|inside|into|in to|in|onto|on to|on top of|on|to|over|atop)"
 _PICK_THEN = r"(?:pick up|pick|grab|take|lift|get)\s+(?P<obj1>.+?)\s+(?:and|then|and then)\s+" + _VERB + r"\s+it"
 _PLACE = re.compile(rf"^(?:{_PICK_THEN}|(?:pick up and\s+)?{_VERB}\s+(?P<obj2>.+?))\s+{_PREP}\s+(?P<dest>.+)$")
@@ -30,6 +30,7 @@ _OPEN = re.compile(r"^(?:open|pull open|slide open|open up)\s+(?P<d>.+)$|^(?:pul
 _CLOSE = re.compile(r"^(?:close|shut|push closed|push shut)\s+(?P<d>.+)$"
                     r"|^(?:push|slide)\s+(?P<d2>.+?)\s+(?:shut|closed|in)$")
 _PICK = re.compile(r"^(?:pick up|pick|grab|lift|lift up)\s+(?P<obj>.+?)(?:\s+up)?$")
+_OPEN_DEST = re.compile(r"^((?:the|a|an)\s+)?(?:open|opened)\s+")
 _ARTICLE = re.compile(r"^(?:the|a|an)\s+")
 _SYNONYMS = {"centre": "middle", "center": "middle", "cube": "block", "rod": "bar", "stick": "bar",
              "can": "cylinder"}
@@ -84,11 +85,15 @@ class OfflinePlanner:
                 return [_close(_drawer(m.group("d") or m.group("d2"), scene, instruction), scene)]
         elif m := _PLACE.match(text):
             obj = resolve(m.group("obj1") or m.group("obj2"), scene, kinds=("object",))
-            dest = resolve(m.group("dest"), scene, kinds=("container", "articulated", "object", "surface"))
+            # "the open drawer" says the drawer is open already: no opening step (drawer_stow)
+            dest_phrase, already_open = _OPEN_DEST.subn(r"\1", m.group("dest"))
+            dest = resolve(dest_phrase, scene, kinds=("container", "articulated", "object", "surface"))
+            if already_open and dest.kind != "articulated":
+                raise PlanError(f"{instruction!r}: the {dest.phrase} is not something that opens")
             if dest.name == obj.name:
                 raise PlanError(f"{instruction!r}: cannot put the {obj.phrase} on itself")
             if dest.kind == "articulated":
-                steps = [_open(dest, scene), _pick(obj, scene), _place(obj, dest, scene)]
+                steps = ([] if already_open else [_open(dest, scene)]) + [_pick(obj, scene), _place(obj, dest, scene)]
                 return steps + ([_close(dest, scene)] if close_after else [])
             if not close_after:
                 return [_pick(obj, scene), _place(obj, dest, scene)]

@@ -46,6 +46,9 @@ def expected_steps(inst) -> list[tuple[str, str, dict]]:
     if inst.family == "drawer_close":
         return [("close the drawer", "close", {"joint": SLIDE})]
     o = inst.obj(p["target"])
+    if inst.family == "drawer_stow":  # the drawer is open already
+        return [(f"pick up the {o.phrase}", "pick", {"object": o.name}),
+                (f"put the {o.phrase} in the drawer", "place", {"object": o.name, "target": "cabinet"})]
     return [("open the drawer", "open", {"joint": SLIDE}), (f"pick up the {o.phrase}", "pick", {"object": o.name}),
             (f"put the {o.phrase} in the drawer", "place", {"object": o.name, "target": "cabinet"}),
             ("close the drawer", "close", {"joint": SLIDE})]

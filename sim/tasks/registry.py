@@ -9,10 +9,12 @@ from functools import lru_cache
 from sim.tasks.base import TaskFamily
 from sim.tasks.drawer import DrawerClose, DrawerOpen
 from sim.tasks.drawer_put import PutInDrawer
+from sim.tasks.drawer_stow import StowInOpenDrawer
 from sim.tasks.pick_place import PickPlace
 from sim.tasks.stack import Stack
 
-TASKS: dict[str, TaskFamily] = {t.name: t for t in (PickPlace(), Stack(), DrawerOpen(), DrawerClose(), PutInDrawer())}
+TASKS: dict[str, TaskFamily] = {t.name: t for t in (PickPlace(), Stack(), DrawerOpen(), DrawerClose(), PutInDrawer(),
+                                                  StowInOpenDrawer())}
 
 
 def get_task(name: str) -> TaskFamily:
