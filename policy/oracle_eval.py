@@ -227,7 +227,7 @@ def _job(seed: int) -> dict:
     else:
         points = DrawerPutPoints if s["task"] == "drawer_put" else TruePoints
         policy.truth = points(offsets, s["bias_cm"], seed, s["task"])
-    phases = phases_for(s["task"], Pace(s["pace"]), s["instructions"]) if s["phases"] else None
+    phases = phases_for(s["task"], Pace(s["pace"]), s["instructions"], s["tasks"]) if s["phases"] else None
     t0 = time.perf_counter()
     out = run_policy_episode(policy, s["task"], seed, dr=s["dr"], observer=policy.truth,
                              time_limit_factor=s["time_limit_factor"], latency_s=s["latency_s"], phases=phases,
@@ -269,10 +269,10 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
     if is_bundle(run_dir):
         manifest = json.loads((run_dir / "manifest.json").read_text())
         dataset, pace = manifest["data"], bundle_pace(manifest).table
-        instructions = manifest.get("instructions") or []
+        instructions, tasks = manifest.get("instructions") or [], manifest.get("tasks") or []
     else:
         dataset, pace = json.loads((run_dir / "dataset.json").read_text()), {}
-        instructions = dataset.get("instructions") or []
+        instructions, tasks = dataset.get("instructions") or [], sorted(dataset.get("tasks") or [])
     if task not in (*CARRIES, "drawer_put"):
         raise ValueError(f"oracle-eval --task {task}: expected a family that carries an object, one of "
                          f"{', '.join(CARRIES)} or drawer_put (a drawer's points are its handle's, not an object's)")
@@ -281,6 +281,7 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
     offsets = measure_offsets(offsets_data or dataset["path"], "drawer_put/object" if task == "drawer_put" else task)
     settings = {"run": str(run_dir), "task": task, "phases": bool(phases), "pace": pace, "dr": dr,
                 "instructions": list(instructions),  # a phase of its own text runs under it where taught
+                "tasks": list(tasks),  # a phase another family's skill does runs as it where taught
                 "bias_cm": float(bias_cm), "steps": inference_steps,
                 "time_limit_factor": time_limit_factor, "true_points": true_points,
                 "latency_s": None if latency_ms is None else latency_ms / 1000.0,

@@ -29,6 +29,16 @@ OWN_PHASE_TEXT: dict[str, dict[int, str]] = {
     "drawer_put": {1: "pick up the {obj} and put it in the open drawer"},
 }
 
+# A phase of the command's own family that another family's skill does, for a bundle taught that family (its
+# `tasks`): family -> {phase: skill family}. The phase runs under OWN_PHASE_TEXT (a template of the skill's
+# family) after the arm has gone back to where the command started (runtime/retreat.py), where that family's data
+# starts. Why: drawer_put's middle cycle started at the handle just let go looks like the start of the closing
+# cycle; from the start pose, an open drawer and an object on the table are a start the text tells apart, as it
+# tells every other family's (sim/tasks/drawer_stow.py).
+SKILL_PHASE: dict[str, dict[int, str]] = {
+    "drawer_put": {1: "drawer_stow"},
+}
+
 # The object a drawer_put command names: the phrase after its first article, up to "in/inside/into the drawer"
 # (every template and paraphrase of sim/tasks/drawer_put.py, and the likes of "stow a red block into the drawer").
 _DRAWER_OBJECT = re.compile(r"\b(?:the|a|an)\s+(.+?)\s+(?:in|inside|into)\s+(?:the|a)\s+drawer\b", re.IGNORECASE)

@@ -309,7 +309,7 @@ def _policy(job: dict, s: dict, holdout) -> dict:
 
     strip = Filmstrip() if s["filmstrips"] else None
     pace = Pace(s.get("pace", {}))
-    phases = (phases_for(job["task"], pace, _WORKER["bundle"].instructions) if job["task"] in s.get("phases", ())
+    phases = (phases_for(job["task"], pace, _WORKER["bundle"].instructions, _WORKER["bundle"].tasks) if job["task"] in s.get("phases", ())
               else None)
     try:
         out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,

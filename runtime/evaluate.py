@@ -76,6 +76,7 @@ class EpisodeOutcome:
     object_points: list | None = None  # the object query's object and drop, base frame [m] (policy.object_query)
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
     phase_starts: list[float] = field(default_factory=list)  # with phases: the sim time [s] each one began
+    retreats: list[float] = field(default_factory=list)  # with phases: seconds each retreat to the start took
 
     def record(self) -> dict:
         out = asdict(self)
@@ -158,7 +159,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
-                if sequencer is not None and sequencer.update(stage):  # the next skill: its text and pace
+                if sequencer is not None and sequencer.update(stage, proprio[-1]):  # the next skill: text, pace
                     out.phase, emb = sequencer.index, sequencer.embedding
                     out.phase_starts.append(round(float(rig.world.time), 2))
                     dt_ns = action_period_ns(control_hz, sequencer.speed)
@@ -167,7 +168,11 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 given = {} if release is None else {"release": release}  # a policy without the query takes none
                 given.update(objects.inputs(images, proprio, stage))
                 told = stage if sequencer is None else sequencer.stage(stage)
-                actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
+                actions = None if sequencer is None else sequencer.retreat(
+                    proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN],
+                    bundle.execute.stop - bundle.execute.start, dt_ns * 1e-9)
+                if actions is None:  # the policy's turn (not a phase's retreat to the start)
+                    actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s
@@ -185,6 +190,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
         out.grasp_cycles = cycles.count
+        if sequencer is not None:
+            out.retreats = sequencer.retreat_seconds
         if query.point is not None:
             out.goal_point = [round(float(v), 4) for v in query.point]
         if objects.points is not None:

@@ -9,7 +9,9 @@ object), a signal a real 2F-85 gives as well as the sim, so no success check or 
 
 A phase's text None stands for the command itself, a text with "{obj}" for the phase's own text with the
 command's object (policy.phased.OWN_PHASE_TEXT, for a bundle taught it); its family names the pace (the bundle's
-pace table) the arm plays that phase at.
+pace table) the arm plays that phase at. For a bundle taught drawer_stow, drawer_put's middle phase is that
+family's skill (policy.phased.SKILL_PHASE): the arm first goes back to where the command started
+(runtime/retreat.py), where drawer_stow's data starts, and the skill takes over there.
 """
 
 from __future__ import annotations
@@ -17,7 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from policy.pace import Pace
-from policy.phased import OWN_PHASE_TEXT, PHASED, fill_object, own_texts_taught
+import numpy as np
+
+from policy.phased import OWN_PHASE_TEXT, PHASED, SKILL_PHASE, fill_object, own_texts_taught
+from runtime.retreat import Retreat, arrived, free_fingers, retreat_chunk
 
 
 # `sudd eval --phases/--no-phases`, `sudd run --phases/--no-phases`
@@ -33,16 +38,26 @@ class Phase:
     # The grasp cycles the policy is told are this count less (policy.stage): a skill of another family counts
     # its own cycles from 0, as that family's data did; the command itself counts as its own data did.
     stage_from: int = 0
+    # Whether the arm first goes back to where the command started (runtime/retreat.py), as the skill's data began.
+    from_start: bool = False
 
 
-def phases_for(task: str, pace: Pace, instructions=()) -> list[Phase]:
+def phases_for(task: str, pace: Pace, instructions=(), tasks=()) -> list[Phase]:
     """The phases of family `task` at the bundle's pace (a ValueError for a family run as one command); a phase
-    of the command's own family gets its own text where the bundle's trained `instructions` hold it."""
+    of the command's own family is another family's skill, from the start pose, where the bundle's `tasks` hold
+    that family (policy.phased.SKILL_PHASE), else gets its own text where the bundle's trained `instructions`
+    hold it."""
     if task not in PHASED:
         raise ValueError(f"phases: the family {task!r} is run as one command; phased families: {', '.join(PHASED)}")
     own = OWN_PHASE_TEXT.get(task, {}) if own_texts_taught(task, instructions) else {}
-    return [Phase(text if text is not None else own.get(i), pace.speed(family), 0 if family == task else i)
-            for i, (text, family) in enumerate(PHASED[task])]
+    out = []
+    for i, (text, family) in enumerate(PHASED[task]):
+        skill = SKILL_PHASE.get(task, {}).get(i)
+        if text is None and skill in tasks:
+            out.append(Phase(OWN_PHASE_TEXT[task][i], pace.speed(skill), i, from_start=True))
+        else:
+            out.append(Phase(text if text is not None else own.get(i), pace.speed(family), 0 if family == task else i))
+    return out
 
 
 def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
@@ -52,20 +67,67 @@ def phase_at(phases: list[Phase], grasp_cycles: int) -> int:
 
 class Sequencer:
     """The phases of one command as it runs: which one the grasp cycles so far select, its text embedding and
-    speed. `update` says when the phase changed (the caller then re-times its ticks and says so)."""
+    speed. `update` says when the phase changed (the caller then re-times its ticks and says so); while a phase's
+    retreat runs, `retreat` gives the chunk to send instead of the policy's."""
 
-    def __init__(self, phases: list[Phase], embed, command_embedding, command: str = ""):
+    def __init__(self, phases: list[Phase], embed, command_embedding, command: str = "", retreat: Retreat = Retreat()):
         self.phases = phases
         # an own text the command names no object for (a free phrasing) falls back to the command itself
         self.texts = [p.text if p.text is None or "{obj}" not in p.text else fill_object(p.text, command)
                       for p in phases]
         self.embeddings = [command_embedding if t is None else embed(t) for t in self.texts]
         self.index: int | None = None
+        self.cfg = retreat
+        self.start: np.ndarray | None = None  # the TCP pose (9,) at the first update: where the command began
+        self._waiting: float | None = None  # seconds a retreat has waited for the hand to be empty
+        self._free = 0.0
+        self._retreating: float | None = None  # seconds the running retreat has taken so far
+        self.retreats: list[float] = []  # seconds each finished retreat took
 
-    def update(self, grasp_cycles: int) -> bool:
+    def update(self, grasp_cycles: int, pose: np.ndarray | None = None) -> bool:
+        """The phase for `grasp_cycles`; `pose` the TCP's (position, rot6d), the first one kept as the start."""
+        if self.start is None and pose is not None:
+            self.start = np.array(pose[:9], np.float64)
         k = phase_at(self.phases, grasp_cycles)
         changed, self.index = k != self.index, k
+        if changed:
+            self._end_retreat()
+            self._waiting = 0.0 if self.phases[k].from_start and self.start is not None else None
+            self._free = 0.0  # seconds the fingers have been free while waiting
         return changed
+
+    def retreat(self, pose: np.ndarray, command: float, closure: float, n: int, dt: float) -> np.ndarray | None:
+        """(n, 10) actions `dt` s apart back toward the start while this phase's retreat runs, else None (the
+        policy's turn). The gripper's position request `command` and measured `closure` (0 open .. 1 closed) say
+        whether the hand is empty: the retreat waits up to cfg.wait_seconds for fingers at their request
+        (cfg.settle seconds of them), and ends at the start pose or after cfg.max_seconds."""
+        if self._waiting is not None:
+            self._free = self._free + dt if free_fingers(command, closure, self.cfg) else 0.0
+            if self._free >= self.cfg.settle - 1e-9:  # let go and settled: back to the start from here
+                self._waiting, self._retreating = None, 0.0
+            else:
+                self._waiting += dt
+                if self._waiting >= self.cfg.wait_seconds - 1e-9:  # still holding: the skill goes on from here
+                    self._waiting = None
+                return None
+        if self._retreating is None:
+            return None
+        if arrived(pose, self.start, self.cfg) or self._retreating >= self.cfg.max_seconds - 1e-9:
+            self._end_retreat()
+            return None
+        self._retreating += dt
+        return retreat_chunk(pose, self.start, command, n, dt, self.cfg)
+
+    @property
+    def retreat_seconds(self) -> list[float]:
+        """Seconds each retreat took so far, the one running last."""
+        running = [] if self._retreating is None else [round(self._retreating, 2)]
+        return self.retreats + running
+
+    def _end_retreat(self) -> None:
+        if self._retreating is not None:
+            self.retreats.append(round(self._retreating, 2))
+        self._retreating = None
 
     @property
     def embedding(self):
@@ -82,5 +144,7 @@ class Sequencer:
     def describe(self, command: str) -> str:
         """'phase 2 of 3: "<text>" at speed 1' for the phase running."""
         k = self.index or 0
-        return f"phase {k + 1} of {len(self.phases)}: '{self.texts[k] or command}' at speed {self.phases[k].speed:g}"
+        back = ", from the start pose" if self.phases[k].from_start else ""
+        return (f"phase {k + 1} of {len(self.phases)}: '{self.texts[k] or command}' at speed "
+                f"{self.phases[k].speed:g}{back}")
 

@@ -35,6 +35,10 @@ def test_a_bundle_taught_the_middle_cycles_own_text_runs_that_phase_under_it():
     free = Sequencer(taught, lambda t: f"emb({t})", "emb(command)", "tidy the table into the cabinet")
     free.update(1)
     assert free.embedding == "emb(command)"  # no object named: the command itself
+    skill = phases_for("drawer_put", pace, plain, tasks=["drawer_close", "drawer_put", "drawer_stow"])
+    # taught drawer_stow: the middle phase is its skill, at its pace, counting from 0 as its data, from home
+    assert skill[1] == Phase("pick up the {obj} and put it in the open drawer", 1.0, 1, from_start=True)
+    assert skill[0] == taught[0] and skill[2] == taught[2]
     assert [command_object(c) for c in ("could you stow the purple bar in the drawer and close it",
                                         "store the  red block into a drawer", "open the drawer")] == \
         ["purple bar", "red block", None]

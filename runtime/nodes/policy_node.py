@@ -225,7 +225,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current.update(text=text, emb=bundle.embed(text),
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
-                    current["phases"] = (Sequencer(phases_for(task, pace, bundle.instructions), bundle.embed,
+                    current["phases"] = (Sequencer(phases_for(task, pace, bundle.instructions, bundle.tasks), bundle.embed,
                                                    current["emb"], text) if task in phased else None)
                     dt_ns = action_period_ns(data_hz, speed)
                     hz = 1e9 / dt_ns
@@ -281,7 +281,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
                     prop = np.asarray(prop, np.float32)
                     seq = current["phases"]
-                    if seq is not None and seq.update(stage):  # the next skill: its text, and its pace from now
+                    if seq is not None and seq.update(stage, prop[-1]):  # the next skill: its text, its pace
                         current["emb"] = seq.embedding
                         dt_ns = action_period_ns(data_hz, seq.speed)
                         hz = 1e9 / dt_ns
@@ -291,12 +291,16 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     settled, found = q.settled, len(objects.answers)
                     given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
                     told = stage if seq is None else seq.stage(stage)  # a phase's own count (runtime.phases)
-                    a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
+                    a = None if seq is None else seq.retreat(prop[-1], 0.0 if g is None else g[1],
+                                                             prop[-1][GRIPPER_COLUMN],
+                                                             bundle.execute.stop - bundle.execute.start, dt_ns * 1e-9)
+                    if a is None:  # the policy's turn (not a phase's retreat to the start)
+                        a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
                               "goes ({:.3f}, {:.3f}, {:.3f}) m (base frame; given in grasp cycle {})".format(
-                                  *objects.points.ravel(), objects.spec.stage))
+                                  *objects.points.ravel(), objects.stage))
                     if q.settled and not settled:  # where the command's goal was found, once per command
                         report["goal_point"] = [round(float(v), 4) for v in q.point]
                         event("policy_goal_point", "info", "goal asked as '{}': at ({:.3f}, {:.3f}, {:.3f}) m in "
