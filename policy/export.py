@@ -59,6 +59,7 @@ from policy.model import DiffusionPolicy, count_params, film_dim
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
 from policy.phased import check_phased
+from policy.object_query import with_skill_families
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
 from policy.warm_start import read_record
@@ -190,6 +191,8 @@ def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict):
                              "was not trained on")
         locator, record = locator_from_bundle(bundle_dir, graph)
         check_compatible(policy_cfg, locator.cfg)
+        if key == "object_query":
+            table = with_skill_families(table, data_info.get("tasks", []))
         out += [{**table, "kept_from": record}, locator]
     if out[0] is None and out[2] is None:
         raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no goal or object query")

@@ -35,6 +35,12 @@ class ObjectQuerySpec:
     families: tuple[str, ...]
     stage: int
     ticks: int
+    # A family whose object grasp comes at another cycle: drawer_stow takes its object first (0), as drawer_put's
+    # middle phase that it is (runtime/phases.py), where drawer_put takes it after the handle (1).
+    family_stage: tuple[tuple[str, int], ...] = ()
+
+    def stage_of(self, family: str | None) -> int:
+        return dict(self.family_stage).get(family, self.stage)
 
 
 def object_query_spec(manifest: dict) -> ObjectQuerySpec | None:
@@ -49,7 +55,27 @@ def object_query_spec(manifest: dict) -> ObjectQuerySpec | None:
                          "[1, 8] (drawer_put's object: 1)")
     if not (isinstance(ticks, int) and 1 <= ticks <= MAX_TICKS):
         raise ValueError(f"manifest object_query.ticks {ticks!r}: expected an integer in [1, {MAX_TICKS}]")
-    return ObjectQuerySpec(tuple(families), stage, ticks)
+    by_family = q.get("family_stage", {})
+    if not (isinstance(by_family, dict) and all(f in families and isinstance(k, int) and 0 <= k <= 8
+                                                and not isinstance(k, bool) for f, k in by_family.items())):
+        raise ValueError(f"manifest object_query.family_stage {by_family!r}: expected a table of its families to "
+                         "the grasp cycle each is served in, integers in [0, 8] (drawer_stow's object: 0)")
+    return ObjectQuerySpec(tuple(families), stage, ticks, tuple(sorted(by_family.items())))
+
+
+def with_skill_families(table: dict, tasks) -> dict:
+    """The object query `table` extended to the families among `tasks` that are a phase of a family it serves
+    (policy.phased.SKILL_PHASE): drawer_stow is drawer_put's middle phase, the same object taken from the same
+    table with the drawer open, so the same locator answers it, given in its first grasp cycle (0)."""
+    from policy.phased import SKILL_PHASE
+
+    families, by_family = list(table["families"]), dict(table.get("family_stage", {}))
+    for served in table["families"]:
+        for skill in SKILL_PHASE.get(served, {}).values():
+            if skill in tasks and skill not in families:
+                families.append(skill)
+                by_family[skill] = 0
+    return {**table, "families": families, **({"family_stage": by_family} if by_family else {})}
 
 
 class ObjectQuery:
@@ -60,6 +86,7 @@ class ObjectQuery:
         spec = getattr(bundle, "object_query", None)  # a torch stand-in (policy.oracle_eval) has none
         self.active = bool(enabled and spec is not None and family in spec.families)
         self.bundle, self.spec = bundle, spec
+        self.stage = spec.stage_of(family) if spec is not None else None  # the grasp cycle it serves
         self._command = bundle.embed(text) if self.active else None  # asked the command, whatever the phase says
         self.answers: list[np.ndarray] = []
         self.points: np.ndarray | None = None  # (2, 3): the object and where it goes, base frame [m]
@@ -72,7 +99,7 @@ class ObjectQuery:
         if len(self.answers) < self.spec.ticks:
             self.answers.append(self.bundle.object_points(images, proprio, self._command))
             self.points = np.median(np.stack(self.answers), axis=0)
-        if stage != self.spec.stage:
+        if stage != self.stage:
             return {}
         flag = np.ones((2, 1), np.float32)
         grasp, release = np.hstack([self.points.astype(np.float32), flag])

@@ -304,6 +304,24 @@ def test_a_manifest_object_query_is_checked_field_by_field():
             object_query_spec({**m, **change})
 
 
+def test_a_skill_phase_family_is_served_the_same_query_in_its_first_cycle():
+    from policy.object_query import ObjectQuery, object_query_spec, with_skill_families
+
+    table = {"families": ["drawer_put"], "stage": 1, "ticks": 3}
+    assert with_skill_families(table, ["drawer_put", "stack"]) == table  # a bundle not taught drawer_stow
+    grown = with_skill_families(table, ["drawer_put", "drawer_stow"])
+    assert grown == {**table, "families": ["drawer_put", "drawer_stow"], "family_stage": {"drawer_stow": 0}}
+    m = {"tasks": ["drawer_put", "drawer_stow"], "grasp_input": True, "object_query": grown}
+    spec = object_query_spec(m)
+    assert spec.stage_of("drawer_put") == 1 and spec.stage_of("drawer_stow") == 0
+    b = _Asked(spec)
+    stow = ObjectQuery(b, "put the red block in the open drawer", "drawer_stow")
+    assert stow.inputs({}, None, 0)["grasp"][3] == 1.0 and stow.inputs({}, None, 1) == {}  # its object comes first
+    for wrong in ({"drawer_stow": -1}, {"stack": 0}, {"drawer_stow": True}, ["drawer_stow"]):
+        with pytest.raises(ValueError, match="family_stage"):
+            object_query_spec({**m, "object_query": {**grown, "family_stage": wrong}})
+
+
 def test_an_episode_asks_the_bundles_object_query(object_bundle):
     from policy.bundle import Bundle
     from runtime.evaluate import run_policy_episode
