@@ -135,6 +135,7 @@ def test_subtask_language_and_task_check_of_the_long_horizon_task():
     ("put the purple block in the left bin", "the scene has: ['red block', 'blue block'"),
     ("put the red block in the far bin", "nothing in the scene is called 'the far bin'"),
     ("stack the red block on the red block", "on itself"),
+    ("put the red block in the open left bin", "the left bin is not something that opens"),
 ])
 def test_unresolvable_references_are_plan_errors_naming_the_scene(text, message):
     with pytest.raises(PlanError, match=message.replace("[", r"\[")):
