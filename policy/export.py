@@ -164,6 +164,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     if object_query is not None:
         object_table, object_locator = object_query_table(model.cfg, normalizer, object_query, data_info)
         overrides.update(release_input=True, grasp_input=True)
+    if object_table is not None:  # kept or measured, it serves the skill families of the ones it serves
+        object_table = with_skill_families(object_table, data_info.get("tasks", []))
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
@@ -191,8 +193,6 @@ def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict):
                              "was not trained on")
         locator, record = locator_from_bundle(bundle_dir, graph)
         check_compatible(policy_cfg, locator.cfg)
-        if key == "object_query":
-            table = with_skill_families(table, data_info.get("tasks", []))
         out += [{**table, "kept_from": record}, locator]
     if out[0] is None and out[2] is None:
         raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no goal or object query")

@@ -28,7 +28,6 @@ import numpy as np
 import torch
 
 from policy.goal_query import role_swap
-from policy.object_query import with_skill_families
 
 GRAPH = "goal_locator"
 FILE = "goal_locator.onnx"
@@ -167,8 +166,7 @@ def object_query_table(policy_cfg, normalizer, request: dict, data_info: dict) -
     locator, record = load_locator(request["locator"], policy_cfg, "object")
     ticks = int(request.get("ticks", 3))
     measured = {f: measure_object(locator, normalizer, request["data"], f, 1, ticks) for f in families}
-    table = {"families": families, "stage": 1, "ticks": ticks,
-             "measured": {"data": str(request["data"]), "content_hash": Dataset(request["data"]).content_hash(),
-                          "by_family": measured},
-             "locator_from": {"run": str(request["locator"]), **record}}
-    return with_skill_families(table, data_info.get("tasks", [])), locator
+    return {"families": families, "stage": 1, "ticks": ticks,
+            "measured": {"data": str(request["data"]), "content_hash": Dataset(request["data"]).content_hash(),
+                         "by_family": measured},
+            "locator_from": {"run": str(request["locator"]), **record}}, locator

@@ -272,7 +272,7 @@ def oracle_eval(run_dir: str | Path, out_dir: str | Path, episodes: int, seed_of
         instructions, tasks = manifest.get("instructions") or [], manifest.get("tasks") or []
     else:
         dataset, pace = json.loads((run_dir / "dataset.json").read_text()), {}
-        instructions, tasks = dataset.get("instructions") or [], sorted(dataset.get("tasks") or [])
+        instructions, tasks = dataset.get("instructions") or [], dataset.get("tasks") or []
     if task not in (*CARRIES, "drawer_put"):
         raise ValueError(f"oracle-eval --task {task}: expected a family that carries an object, one of "
                          f"{', '.join(CARRIES)} or drawer_put (a drawer's points are its handle's, not an object's)")

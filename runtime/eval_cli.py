@@ -309,10 +309,11 @@ def _policy(job: dict, s: dict, holdout) -> dict:
 
     strip = Filmstrip() if s["filmstrips"] else None
     pace = Pace(s.get("pace", {}))
-    phases = (phases_for(job["task"], pace, _WORKER["bundle"].instructions, _WORKER["bundle"].tasks) if job["task"] in s.get("phases", ())
+    bundle = _WORKER["bundle"]
+    phases = (phases_for(job["task"], pace, bundle.instructions, bundle.tasks) if job["task"] in s.get("phases", ())
               else None)
     try:
-        out = run_policy_episode(_WORKER["bundle"], job["task"], job["seed"], dr=s["dr"], holdout=holdout,
+        out = run_policy_episode(bundle, job["task"], job["seed"], dr=s["dr"], holdout=holdout,
                                  paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from policy.pace import Pace
 import numpy as np
 
+from policy.pace import Pace
 from policy.phased import OWN_PHASE_TEXT, PHASED, SKILL_PHASE, fill_object, own_texts_taught
 from runtime.retreat import Retreat, arrived, free_fingers, retreat_chunk
 

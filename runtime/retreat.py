@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from policy.action_frame import rot6d_of, rotations
+from sim.rotations import matrix_to_rotvec, rotvec_to_matrix
 
 
 @dataclass(frozen=True)
@@ -44,24 +45,12 @@ class Retreat:
 
 def angle_between(R0: np.ndarray, R1: np.ndarray) -> float:
     """The rotation angle [rad] from R0 to R1."""
-    c = (np.trace(R0.T @ R1) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+    return float(np.linalg.norm(matrix_to_rotvec(R0.T @ R1)))
 
 
 def _turned(R0: np.ndarray, R1: np.ndarray, f: float) -> np.ndarray:
-    """R0 turned the fraction f of the way to R1 about their common axis (a slerp, by Rodrigues)."""
-    Rd = R0.T @ R1
-    angle = angle_between(np.eye(3), Rd)
-    if angle < 1e-9:
-        return R1.copy()
-    if np.pi - angle < 1e-6:  # a half turn: the axis from the symmetric part
-        w, v = np.linalg.eigh((Rd + np.eye(3)) / 2.0)
-        axis = v[:, np.argmax(w)]
-    else:
-        axis = np.array([Rd[2, 1] - Rd[1, 2], Rd[0, 2] - Rd[2, 0], Rd[1, 0] - Rd[0, 1]]) / (2.0 * np.sin(angle))
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    a = f * angle
-    return R0 @ (np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K))
+    """R0 turned the fraction f of the way to R1 about their common axis (a slerp)."""
+    return R0 @ rotvec_to_matrix(f * matrix_to_rotvec(R0.T @ R1))
 
 
 def retreat_chunk(pose: np.ndarray, start: np.ndarray, gripper: float, n: int, dt: float,

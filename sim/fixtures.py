@@ -49,7 +49,7 @@ def _pieces(R: np.ndarray, half: np.ndarray):
     reaches into the drawer the arm has to put things in; one box around its top or bottom panel, flat and
     turned in yaw, reaches up to 4 cm in front of the drawer's face at 0.17 rad, right where the fingers come
     down to the handle: the guard held them there until the episode timed out (policy/EXPERIMENTS.md, "The
-    guard's phantom overhang at the cabinet's front")."""
+    cabinet's yaw extreme: more data there, and the guard's phantom overhang")."""
     counts = []
     for k in range(3):
         col = np.abs(R[:, k])

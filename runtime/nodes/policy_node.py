@@ -225,8 +225,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current.update(text=text, emb=bundle.embed(text),
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
-                    current["phases"] = (Sequencer(phases_for(task, pace, bundle.instructions, bundle.tasks), bundle.embed,
-                                                   current["emb"], text) if task in phased else None)
+                    phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
+                    current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
                     hz = 1e9 / dt_ns
                     q = current["query"]
