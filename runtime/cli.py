@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     from datagen import cli as data_cli
     from datagen import generate_cli, views_cli
     from policy import cli as policy_cli
-    from runtime import eval_cli, run_cli
+    from runtime import eval_cli, eval_compare, run_cli
     from sim import cli as sim_cli
 
     parser = argparse.ArgumentParser(
@@ -38,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     policy_cli.register(sub)
     run_cli.register(sub)
     eval_cli.register(sub)
+    eval_compare.register(sub)
 
     bench = sub.add_parser("bench", help="measure speed and memory figures (medians, one run)",
                            description="Run a benchmark area and print its figures; --json prints one JSON object.",
