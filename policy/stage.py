@@ -9,7 +9,12 @@ alike on the real gripper and in sim, and costs no perception.
 A cycle is a hold followed by a release: the gripper is commanded closed (target >= CLOSED), the fingers stop
 short of closing fully (measured closure < AIR: they were stopped by something; closing on nothing reaches
 ~1 and is a missed grasp, which the collector retries without moving on), and the command opens again (the
-collector's half-open pre-shape for the handle, 0.5, is not a close). On the 391 verified collector drawer_put
+collector's half-open pre-shape for the handle, 0.5, is not a close) below RELEASED. The band between RELEASED and
+CLOSED changes nothing: a policy's gripper channel is continuous, and one that lets go slowly hovers at CLOSED
+for a tick or two (0.75, 0.75, 0.66 in successive chunks), which without the band counted two cycles for one
+release and sent drawer_put to its closing phase with nothing stowed (3 of 40 fresh episodes of step 29;
+policy/EXPERIMENTS.md, "Step 29 ships"). The collector's commands cross the band once, so its counts are the same
+with or without it. On the 391 verified collector drawer_put
 episodes of out/data_ft: 0 cycles while opening the drawer, 1 while taking the object to it, 2 while closing
 it, in 338 (86 %); the rest also count a re-grasp of a slipping handle or object. Both inputs are what a
 2F-85 reports (its position request and position), in sim and on the robot. The count at an observation is
@@ -24,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 CLOSED = 0.75  # gripper command at or above this: closing (the collector's levels: 0 open, 0.5 pre-shape, 1 closed)
+RELEASED = 0.6  # and below this, after a close: let go (above the 0.5 pre-shape; the hysteresis band's bottom)
 AIR = 0.97     # measured closure at or above this: closed on nothing (the 2F-85's fully closed fingers)
 GRIPPER_COLUMN = 9  # datagen.schema: the gripper's column in proprio (measured closure) and action (command)
 
@@ -46,7 +52,7 @@ class GraspCycles:
         if cmd >= CLOSED:
             self._closing = True
             self._peak = max(self._peak, c)
-        elif self._closing:
+        elif self._closing and cmd < RELEASED:
             self.count += self._peak < AIR
             self._closing, self._peak = False, 0.0
         return self.count

@@ -26,6 +26,14 @@ def test_a_missed_grasp_and_the_half_open_pre_shape_do_not_count():
     assert _feed(air + [(1, 0.85), (1, 0.86), (0, 0.2)]) == [0, 0, 0, 0, 0, 0, 1]  # the retry holds the handle
 
 
+def test_a_slow_let_go_that_hovers_at_the_threshold_counts_once():
+    # step 29's drawer_put seed 100517: the policy's channel came down 0.85, 0.7499, 0.7501, 0.66 on the handle
+    slow = [(1, 0.85), (1, 0.84), (0.85, 0.85), (0.7499, 0.73), (0.7501, 0.77), (0.66, 0.72), (0.5, 0.6), (0.0, 0.1)]
+    assert _feed(slow) == [0, 0, 0, 0, 0, 0, 1, 1]
+    # inside the band nothing changes: a close that comes back up from 0.65 is the same hold
+    assert _feed([(1, 0.5), (0.65, 0.5), (1, 0.5), (0.2, 0.3)]) == [0, 0, 0, 1]
+
+
 def test_reset_starts_a_new_task_and_bad_numbers_are_refused():
     c = GraspCycles()
     for cmd, pos in [(1, 0.5), (0, 0.1)]:
