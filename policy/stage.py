@@ -13,8 +13,8 @@ collector's half-open pre-shape for the handle, 0.5, is not a close) below RELEA
 CLOSED changes nothing: a policy's gripper channel is continuous, and one that lets go slowly hovers at CLOSED
 for a tick or two (0.75, 0.75, 0.66 in successive chunks), which without the band counted two cycles for one
 release and sent drawer_put to its closing phase with nothing stowed (3 of 40 fresh episodes of step 29;
-policy/EXPERIMENTS.md, "Step 29 ships"). The collector's commands cross the band once, so its counts are the same
-with or without it. On the 391 verified collector drawer_put
+policy/EXPERIMENTS.md, "drawer_put's phase switches"). The collector's commands cross the band once, so its
+counts are the same with or without it. On the 391 verified collector drawer_put
 episodes of out/data_ft: 0 cycles while opening the drawer, 1 while taking the object to it, 2 while closing
 it, in 338 (86 %); the rest also count a re-grasp of a slipping handle or object. Both inputs are what a
 2F-85 reports (its position request and position), in sim and on the robot. The count at an observation is

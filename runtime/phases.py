@@ -22,7 +22,7 @@ import numpy as np
 
 from policy.pace import Pace
 from policy.phased import OWN_PHASE_TEXT, PHASED, SKILL_PHASE, fill_object, own_texts_taught
-from runtime.retreat import Retreat, arrived, free_fingers, retreat_chunk
+from runtime.retreat import Retreat, arrived, free_fingers, hold_chunk, retreat_chunk
 
 
 # `sudd eval --phases/--no-phases`, `sudd run --phases/--no-phases`
@@ -97,10 +97,11 @@ class Sequencer:
         return changed
 
     def retreat(self, pose: np.ndarray, command: float, closure: float, n: int, dt: float) -> np.ndarray | None:
-        """(n, 10) actions `dt` s apart back toward the start while this phase's retreat runs, else None (the
-        policy's turn). The gripper's position request `command` and measured `closure` (0 open .. 1 closed) say
-        whether the hand is empty: the retreat waits up to cfg.wait_seconds for fingers at their request
-        (cfg.settle seconds of them), and ends at the start pose or after cfg.max_seconds."""
+        """(n, 10) actions `dt` s apart while this phase's retreat runs, else None (the policy's turn). The
+        gripper's position request `command` and measured `closure` (0 open .. 1 closed) say whether the hand is
+        empty: the retreat holds the arm still with the hand told to open for up to cfg.wait_seconds until the
+        fingers are at their request (cfg.settle seconds of them), then goes back toward the start, and ends
+        there or after cfg.max_seconds."""
         if self._waiting is not None:
             self._free = self._free + dt if free_fingers(command, closure, self.cfg) else 0.0
             if self._free >= self.cfg.settle - 1e-9:  # let go and settled: back to the start from here
@@ -109,7 +110,8 @@ class Sequencer:
                 self._waiting += dt
                 if self._waiting >= self.cfg.wait_seconds - 1e-9:  # still holding: the skill goes on from here
                     self._waiting = None
-                return None
+                    return None
+                return hold_chunk(pose, n)  # still, the hand opening: not the next skill's move yet
         if self._retreating is None:
             return None
         if arrived(pose, self.start, self.cfg) or self._retreating >= self.cfg.max_seconds - 1e-9:

@@ -14,7 +14,9 @@ The retreat starts only once the hand is empty. A grasp cycle ends when the comm
 (policy.stage), and a hand told to open is still round the handle for a few tenths of a second. Fingers that
 nothing stops reach their request, so `free_fingers` asks that the 2F-85's measured position be at its request,
 and the retreat waits `settle` seconds more, as the collector holds still after a release (datagen.primitives'
-RELEASE_SECONDS); a hand still holding after `wait_seconds` leaves the skill to go on from where it is.
+RELEASE_SECONDS); a hand still holding after `wait_seconds` leaves the skill to go on from where it is. While it
+waits, the arm holds where it is with the hand told to open fully (`hold_chunk`), rather than the next skill
+moving an arm whose fingers are still round the handle (policy/EXPERIMENTS.md, "drawer_put's phase switches").
 (A retreat before "close the drawer" was measured and not kept: from home the closing skill saw the object in
 the drawer, which drawer_close's data never shows; policy/EXPERIMENTS.md, "Back to the start before closing".)
 
@@ -71,6 +73,13 @@ def retreat_chunk(pose: np.ndarray, start: np.ndarray, gripper: float, n: int, d
             p = lift + (p1 - lift) * min(1.0, (s - legs[0]) / legs[1]) if legs[1] > 0 else lift
         f = 1.0 if angle < 1e-9 else min(1.0, (k + 1) * dt * cfg.turn / angle)
         out[k, :3], out[k, 3:9], out[k, 9] = p, rot6d_of(_turned(R0, R1, f)), gripper
+    return out
+
+
+def hold_chunk(pose: np.ndarray, n: int, gripper: float = 0.0) -> np.ndarray:
+    """(n, 10) absolute actions that hold the TCP `pose` (9,) with the gripper at `gripper` (0: open)."""
+    out = np.empty((n, 10), np.float32)
+    out[:, :9], out[:, 9] = np.asarray(pose[:9], np.float32), gripper
     return out
 
 

@@ -76,11 +76,16 @@ def test_the_retreat_waits_for_an_empty_hand_and_leaves_a_held_handle_to_the_ski
     cfg = Retreat(wait_seconds=1.0, settle=0.4)
     held = Sequencer(phases_for("drawer_put", Pace({}), tasks=STOW), lambda t: t, "cmd", retreat=cfg)
     held.update(0, HOME), held.update(1, AT_HANDLE)
-    assert [held.retreat(AT_HANDLE, 0.5, 0.40, 8, 0.1) for _ in range(10)] == [None] * 10  # waited 1 s: none
+    waits = [held.retreat(AT_HANDLE, 0.5, 0.40, 8, 0.1) for _ in range(10)]
+    for chunk in waits[:9]:  # while it waits the arm holds still, the hand told to open
+        assert chunk.shape == (8, 10) and np.allclose(chunk[:, :9], AT_HANDLE[:9]) and np.all(chunk[:, 9] == 0.0)
+    assert waits[9] is None  # waited 1 s, still held: the skill goes on from here
     assert held.retreat(AT_HANDLE, 0.0, 0.0, 8, 0.1) is None and held.retreat_seconds == []  # not later either
     freed = Sequencer(phases_for("drawer_put", Pace({}), tasks=STOW), lambda t: t, "cmd", retreat=cfg)
     freed.update(0, HOME), freed.update(1, AT_HANDLE)
     opening = [(0.5, 0.40), (0.0, 0.30), (0.0, 0.02), (0.0, 0.0), (0.0, 0.0)]  # free from the third tick
-    assert [freed.retreat(AT_HANDLE, c, x, 8, 0.1) for c, x in opening] == [None] * 5
+    holds = [freed.retreat(AT_HANDLE, c, x, 8, 0.1) for c, x in opening]
+    assert all(np.allclose(h[:, :3], AT_HANDLE[:3]) and np.all(h[:, 9] == 0.0) for h in holds)
+    assert freed.retreat_seconds == []  # holding is not retreating
     chunk = freed.retreat(AT_HANDLE, 0.0, 0.0, 8, 0.1)  # 0.4 s free: back to the start
     assert chunk is not None and np.all(chunk[:, 9] == 0.0) and freed.retreat_seconds == [0.1]
