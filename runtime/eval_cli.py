@@ -141,7 +141,7 @@ def _eval(args) -> int:
                                  "mode": "lockstep"})
     args.out.mkdir(parents=True, exist_ok=True)
     results_path = args.out / "results.jsonl"
-    done = _read(results_path)
+    done = read_results(results_path)
     key = lambda j: (j["suite"], j["task"], j["seed"], j["who"], j.get("mode", "lockstep"))  # noqa: E731
     have = {key(r) for r in done}
     todo = [j for j in jobs if key(j) not in have]
@@ -171,7 +171,7 @@ def _eval(args) -> int:
         return 130
     bar.close()
     wanted = {key(j) for j in jobs}
-    records = [r for r in _read(results_path) if key(r) in wanted]
+    records = [r for r in read_results(results_path) if key(r) in wanted]
     rows = summarise(records)
     table = markdown_table(rows)
     why = failure_table(rows)
@@ -227,7 +227,8 @@ def library_versions() -> dict[str, str]:
     return out
 
 
-def _read(path: Path) -> list[dict]:
+def read_results(path: Path) -> list[dict]:
+    """The episode records of an eval's results.jsonl ([] when there is none yet)."""
     if not path.is_file():
         return []
     out = []

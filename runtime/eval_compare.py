@@ -45,21 +45,21 @@ def mcnemar_exact(gained: int, lost: int) -> float:
 
 def load_outcomes(dirs: list[Path]) -> dict[Key, bool]:
     """The policy's success per (suite, task, seed) over the eval directories `dirs`."""
+    from runtime.eval_cli import read_results
+
     out: dict[Key, bool] = {}
     where: dict[Key, Path] = {}
     for d in dirs:
         path = Path(d) / "results.jsonl"
         if not path.is_file():
             raise ValueError(f"{d}: no results.jsonl (expected the --out directory of a `sudd eval`)")
-        for n, line in enumerate(path.read_text().splitlines(), 1):
-            if not line.strip():
-                continue
+        # as `sudd eval` reads it: a line cut by a kill is skipped (that episode runs again on a resume)
+        for n, rec in enumerate(read_results(path), 1):
             try:
-                rec = json.loads(line)
                 if rec.get("who", "policy") != "policy":
                     continue
                 key, ok = (str(rec["suite"]), str(rec["task"]), int(rec["seed"])), bool(rec["success"])
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            except (AttributeError, KeyError, TypeError, ValueError) as exc:
                 raise ValueError(f"{path}:{n}: not an eval record ({exc}); expected a line of `sudd eval`'s "
                                  "results.jsonl with suite, task, seed and success") from None
             if key in out and out[key] != ok:
