@@ -175,7 +175,9 @@ def locator_from_bundle(bundle_dir: str | Path, graph: str) -> tuple[DiffusionPo
     if graph not in manifest.get("graphs", {}) or not table:
         raise ValueError(f"bundle import: {bundle_dir} has no {graph} graph (its graphs: "
                          f"{', '.join(manifest.get('graphs', {}))})")
-    cfg = config_from_dict(manifest["config"])
+    # a locator's own crop (policy.goal_locator.check_compatible); bundles from before it was recorded: the policy's
+    crop = table.get("locator_from", {}).get("crop_size", manifest["config"]["crop_size"])
+    cfg = config_from_dict({**manifest["config"], "crop_size": list(crop)})
     normalizer = Normalizer.load(bundle_dir / "stats.npz")
     spec = graph_spec(cfg, graph)
     probes = {}

@@ -136,13 +136,15 @@ def load_locator(run_dir: str | Path, policy_cfg, question: str = "goal"):
                          f"give a `sudd pretrain --{question}-locator` run")
     locator, cfg, _ = load_run_model(run_dir)
     check_compatible(policy_cfg, cfg)
-    return locator, {k: pre[k] for k in ("goal_locator", "locator_question", "views", "view_count", "scenes")
-                     if k in pre}
+    return locator, {**{k: pre[k] for k in ("goal_locator", "locator_question", "views", "view_count", "scenes")
+                        if k in pre}, "crop_size": list(cfg.crop_size)}
 
 
 def check_compatible(policy_cfg, locator_cfg) -> None:
-    """A locator must read the bundle's inputs: the same cameras, image and crop size, horizon and instruction."""
-    keys = ("cameras", "image_size", "crop_size", "obs_horizon", "text_goal", "aux_dim", "aux_target_frame")
+    """A locator must read the bundle's inputs: the same cameras, image size, horizon and instruction. Its crop may
+    differ (the crop is inside its graph): a locator of the whole frame (`--set crop_size=[128,128]`) sees the
+    block the wrist camera shows at its edge, which the policy's centre crop cuts off."""
+    keys = ("cameras", "image_size", "obs_horizon", "text_goal", "aux_dim", "aux_target_frame")
     differ = [k for k in keys if getattr(policy_cfg, k) != getattr(locator_cfg, k)]
     if differ:
         raise ValueError("the goal locator reads other inputs than the policy: " + ", ".join(

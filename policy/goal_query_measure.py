@@ -47,11 +47,15 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
                          "(policy.goal_query.role_swap); measure on data of those families")
     model.eval()
     asked = model if locator is None else locator.eval()
+    # the frames as the asked model crops them: a locator may read the whole frame (goal_locator.check_compatible)
+    asked_ds = ds if asked.cfg.crop_size == cfg.crop_size else _first_frames(
+        data, asked.cfg, normalizer, embedder, ticks, lambda *_: False)[0]
     queried, head_release, truth = [], [], []
     for k, rows in sorted(first.items()):
         batch = finish_images(default_collate([ds[i] for i in rows]))
+        asked_batch = batch if asked_ds is ds else finish_images(default_collate([asked_ds[i] for i in rows]))
         swapped = torch.from_numpy(embed_instructions(embedder, [role_swap(ds.instructions[k])], cfg.text_goal))
-        grasp = asked.aux_points(asked.obs_encoder(batch["images"], batch["proprio"],
+        grasp = asked.aux_points(asked.obs_encoder(asked_batch["images"], asked_batch["proprio"],
                                                    swapped.expand(len(rows), -1)))[:, :3].numpy()
         own = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"], batch["text"]))[:, 3:6].numpy()
         steps = [ds._newest_step(i)[1] for i in rows]

@@ -139,3 +139,40 @@ def test_the_policy_bench_times_a_goal_query_bundle_and_its_goal_point(located):
     f = run_policy_bench(quick=True, bundle=root / "bundle", threads=(1,))
     assert f["goal_point"]["p50_ms"] > 0 and f["obs_encoder"]["p50_ms"] > 0
     assert f["bytes"]["goal_locator.onnx"] > 0 and "goal_point" in format_table(f)
+
+
+def test_a_locator_of_the_whole_frame_is_exported_measured_and_kept_at_its_own_crop(located, tmp_path):
+    """A locator may read the whole frame where the policy reads its centre crop: the wrist camera shows the block
+    to stack on at its edge in many scenes, which the centre crop cuts off. Its crop is its graph's and the
+    manifest's record, so the bundle's goal point, the measured table and a re-export that keeps it all read it."""
+    from policy.bundle_import import locator_from_bundle
+    from policy.pretrain import pretrain
+
+    root, _ = located
+    whole = list(TINY["image_size"])
+    data = root / "data"
+    pretrain(root / "views", data, root / "plain", tmp_path / "whole", 3,
+             {"lr": 3e-3, "warmup_steps": 1, "val_every": 3, "log_every": 3, "crop_size": whole}, threads=1,
+             progress=False, embedder=hash_embedder, init_from=root / "plain", goal_locator=True)
+    export(root / "plain", tmp_path / "bundle", cache_dir=CACHE, goal_locator=tmp_path / "whole",
+           goal_query={"families": ["stack"], "data": data, "ticks": 2})
+    m = json.loads((tmp_path / "bundle" / "manifest.json").read_text())
+    assert m["goal_query"]["locator_from"]["crop_size"] == whole and m["crop_size"] == TINY["crop_size"]
+    assert m["parity"]["goal_locator_max_abs_err"] <= STEP_TOL
+    b = Bundle.load(tmp_path / "bundle")
+    images, proprio = random_observation(b, 1)
+    emb = b.embed("stack the blue block on the red block")
+    loc, _, _ = load_run_model(tmp_path / "whole")
+    with torch.no_grad():
+        def asked(crop):
+            imgs = {c: prepare_images(torch.from_numpy(images[c])[None], crop) for c in loc.cfg.cameras}
+            rel = loc.aux_head(loc.obs_encoder.camera_features(imgs, torch.from_numpy(emb)[None])[:, -1])[0, :3]
+            return points_from_tcp(rel.numpy()[None] * AUX_TCP_SCALE, proprio[-1, :9].astype(np.float64))[0]
+        whole_answer, centre_answer = asked(tuple(whole)), asked(tuple(TINY["crop_size"]))
+    assert np.abs(whole_answer - centre_answer).max() > 1e-4  # the two crops tell apart
+    np.testing.assert_allclose(b.goal_point(images, proprio, emb), whole_answer, atol=2e-4)
+    rebuilt, record = locator_from_bundle(tmp_path / "bundle", "goal_locator")
+    assert list(rebuilt.cfg.crop_size) == whole and record["rebuilt_max_abs_err"] <= STEP_TOL
+    kept = export(root / "plain", tmp_path / "kept", cache_dir=CACHE, queries_from=tmp_path / "bundle")
+    assert kept["goal_query"]["locator_from"]["crop_size"] == whole
+    assert (tmp_path / "kept" / "goal_locator.onnx").read_bytes() == (tmp_path / "bundle" / "goal_locator.onnx").read_bytes()
