@@ -100,7 +100,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     error measured on DIR's episodes, and the obs encoder with the grasp point input (config grasp_input).
     queries_from: a bundle whose goal and object queries (their tables as measured, their locators rebuilt from
     its graphs, policy.bundle_import.locator_from_bundle) this export keeps: a denoiser fine-tuned on frozen
-    encoders changes neither, and their runs and data need not still exist. Excludes goal_query and object_query."""
+    encoders changes neither, and their runs and data need not still exist. With goal_query or object_query, the
+    other one is kept and that one measured anew (e.g. a new goal locator beside the bundle's object locator)."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -156,10 +157,14 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         overrides["release_input"] = True
     object_table, object_locator = None, None
     if queries_from is not None:
-        if goal_query is not None or object_query is not None:
-            raise ValueError("--queries-from keeps a bundle's goal and object queries: give it, or --goal-query / "
-                             "--object-query to measure new ones, not both")
-        table, locator, object_table, object_locator = _kept_queries(queries_from, model.cfg, data_info)
+        if goal_query is not None and object_query is not None:
+            raise ValueError("--queries-from keeps the bundle's queries this export does not measure anew; with both "
+                             "--goal-query and --object-query there is none left to keep: drop --queries-from")
+        anew = {"goal_query"} if goal_query is not None else {"object_query"} if object_query is not None else set()
+        kept = _kept_queries(queries_from, model.cfg, data_info, anew)
+        if goal_query is None:
+            table, locator = kept[:2]
+        object_table, object_locator = kept[2:]
         overrides.update(release_input=True, **({"grasp_input": True} if object_table else {}))
     if object_query is not None:
         object_table, object_locator = object_query_table(model.cfg, normalizer, object_query, data_info)
@@ -172,8 +177,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
                         text_encoder_from, pace, table, locator, object_table, object_locator, phased)
 
 
-def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict):
-    """(goal table, goal locator, object table, object locator) of a bundle, for `queries_from`."""
+def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict, anew: set = frozenset()):
+    """(goal table, goal locator, object table, object locator) of a bundle, for `queries_from`; the queries in
+    `anew` ("goal_query", "object_query") are measured by this export instead, so they come back None."""
     from policy.bundle_import import locator_from_bundle
     from policy.goal_locator import check_compatible
 
@@ -181,7 +187,7 @@ def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict):
     out: list = []
     for key, graph in (("goal_query", LOCATOR_GRAPH), ("object_query", OBJECT_GRAPH)):
         table = source.get(key)
-        if not table:
+        if not table or key in anew:
             out += [None, None]
             continue
         if graph not in source.get("graphs", {}):
@@ -195,7 +201,9 @@ def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict):
         check_compatible(policy_cfg, locator.cfg)
         out += [{**table, "kept_from": record}, locator]
     if out[0] is None and out[2] is None:
-        raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no goal or object query")
+        raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no "
+                         f"{' or '.join(k.replace('_', ' ') for k in ('goal_query', 'object_query') if k not in anew)}"
+                         " to keep")
     return tuple(out)
 
 

