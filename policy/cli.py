@@ -97,6 +97,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "train an object locator instead: the same copy taught where drawer_put's object is and where in the drawer "
         "it goes, from the start (views of `sudd views --task drawer_put --stage object --at-home`), validated on "
         "--data's drawer_put episodes; try it with `sudd oracle-eval BUNDLE --task drawer_put --phases --points-from RUN`"))
+    pre.add_argument("--from-locator", action="store_true", help=(
+        "with --goal-locator (or --object-locator) and --init-from BUNDLE: start from the bundle's own locator, "
+        "rebuilt from its graph, instead of its policy's encoders and head (more views, or the whole frame with "
+        "--set crop_size=[128,128], from where the shipped locator left off)"))
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
@@ -239,7 +243,7 @@ def _pretrain(args) -> int:
     summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set),
                        init_from=args.init_from, head_only=args.head_only, episode_share=args.episode_share,
                        episode_tasks=tuple(args.episode_task), goal_locator=args.goal_locator or args.object_locator,
-                       locator_question="object" if args.object_locator else "goal")
+                       locator_question="object" if args.object_locator else "goal", from_locator=args.from_locator)
     val = summary["validation"] or {}
     if args.object_locator:
         b = summary["goal_query_before"]

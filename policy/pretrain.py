@@ -148,7 +148,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
              out_run_dir: str | Path, steps: int, overrides: dict | None = None, threads: int | None = None,
              progress: bool = True, embedder=None, init_from: str | Path | None = None,
              head_only: bool = False, episode_share: float = 0.0, episode_tasks: tuple[str, ...] = (),
-             goal_locator: bool = False, locator_question: str = "goal") -> dict:
+             goal_locator: bool = False, locator_question: str = "goal", from_locator: bool = False) -> dict:
     """Train the encoders and aux head on the views for `steps` steps; returns the summary (see module doc).
 
     init_from: an earlier pretrain run to go on from (its EMA encoders and head, a fresh optimizer and
@@ -165,6 +165,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     locator_question: with goal_locator, "object" teaches the object question instead (policy/goal_locator.py:
     drawer_put's object and drop from the start, on `sudd views --at-home` views; the loss on the grasp and release
     points, validated by policy.goal_query_measure.measure_object on --data's drawer_put episodes).
+    from_locator: with goal_locator and a bundle as init_from, start from the bundle's own locator of that question
+    (rebuilt from its graph) instead of its policy's encoders and head.
     """
     from tqdm import tqdm
 
@@ -189,6 +191,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
         raise ValueError("a goal locator is a copy of a policy's encoders and head taught the goal query on home views: "
                          "give --init-from the bundle it goes with, and no --episode-share (recorded frames carry "
                          "the policy's labels, not the query's)")
+    if from_locator and not (goal_locator and init_from is not None):
+        raise ValueError("from_locator starts a locator from a bundle's own: give goal_locator (sudd pretrain "
+                         "--goal-locator or --object-locator) and init_from the bundle (--init-from BUNDLE)")
     if head_only and init_from is None:
         raise ValueError("head_only trains the aux head on the encoders of an earlier pretrain run: give init_from "
                          "(sudd pretrain --head-only --init-from PRETRAIN_RUN)")
@@ -222,7 +227,11 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     model = DiffusionPolicy(cfg)
     model.set_proprio_stats(fit.normalizer)
     warm = None
-    if init_from is not None:
+    if from_locator:
+        from policy.goal_locator import GRAPH, OBJECT_GRAPH
+
+        warm = warm_start.load_locator_into(model, init_from, GRAPH if locator_question == "goal" else OBJECT_GRAPH)
+    elif init_from is not None:
         warm = warm_start.load_into(model, init_from)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
     trained = ("aux_head",) if head_only else PRETRAINED

@@ -114,6 +114,21 @@ def load_pretrained_into(model: torch.nn.Module, pretrain_run: str | Path, norma
             "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **_copy_into(model, old, path)}
 
 
+def load_locator_into(model: torch.nn.Module, bundle_dir: str | Path, graph: str) -> dict:
+    """Copy a bundle's locator (goal_locator or object_locator, rebuilt from its graph by
+    policy.bundle_import.locator_from_bundle) into `model`'s encoders and head; returns the record. Why: to teach a
+    shipped locator more views, or to read another crop, from where it left off rather than from the policy's
+    encoders, when its run is gone."""
+    from policy.bundle_import import locator_from_bundle
+
+    source, record = locator_from_bundle(bundle_dir, graph)
+    old = {k: v for k, v in source.state_dict().items() if k.startswith(tuple(p + "." for p in PRETRAINED))}
+    path = Path(bundle_dir) / f"{graph}.onnx"
+    return {"source": str(bundle_dir), "bundle": True, "locator": graph,
+            "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "rebuilt_max_abs_err": record["rebuilt_max_abs_err"], **_copy_into(model, old, path)}
+
+
 def _from_bundle(bundle_dir: str | Path) -> tuple[dict, dict]:
     from policy.bundle_import import model_from_bundle
 

@@ -16,6 +16,7 @@ from policy.export import export
 from policy.goal_locator import locator_rows
 from policy.goal_query import GoalQuery
 from policy.model import prepare_images
+from policy.normalize import Normalizer
 from policy.parity import STEP_TOL
 from policy.testing import STACK, TINY, goal_query_run, hash_embedder, random_observation
 from policy.train import load_run_model
@@ -179,3 +180,28 @@ def test_a_locator_of_the_whole_frame_is_exported_measured_and_kept_at_its_own_c
     with pytest.raises(ValueError, match="asks no object query to keep"):  # the goal query measured anew
         export(root / "plain", tmp_path / "x", cache_dir=CACHE, queries_from=tmp_path / "bundle",
                goal_locator=tmp_path / "whole", goal_query={"families": ["stack"], "data": data, "ticks": 2})
+
+
+def test_a_locator_goes_on_from_a_bundles_own_locator(located, tmp_path):
+    """--from-locator: the run starts from the bundle's goal locator (rebuilt from its graph), not from its policy's
+    head, so its error before training is the shipped locator's."""
+    from policy.bundle_import import locator_from_bundle
+    from policy.goal_query_measure import measure
+    from policy.pretrain import pretrain
+
+    root, _ = located
+    data, settings = root / "data", {"lr": 3e-3, "warmup_steps": 1, "val_every": 1, "log_every": 1}
+    go = lambda out, **kw: pretrain(root / "views", data, root / "bundle", tmp_path / out, 1, settings,  # noqa: E731
+                                    threads=1, progress=False, embedder=hash_embedder, init_from=root / "bundle",
+                                    goal_locator=True, **kw)
+    went_on, afresh = go("on", from_locator=True), go("afresh")
+    shipped, _ = locator_from_bundle(root / "bundle", "goal_locator")
+    want = measure(shipped, Normalizer.load(root / "bundle" / "stats.npz"), data, ["stack"],
+                   embedder=hash_embedder)["measured"]["release_cm_median"]
+    assert went_on["goal_query_before"]["goal_cm_median"] == pytest.approx(want, abs=0.02)
+    assert afresh["goal_query_before"]["goal_cm_median"] != pytest.approx(want, abs=0.02)
+    record = json.loads((tmp_path / "on" / "warm_start.json").read_text())
+    assert record["locator"] == "goal_locator" and record["rebuilt_max_abs_err"] <= STEP_TOL
+    with pytest.raises(ValueError, match="from_locator"):
+        pretrain(root / "views", data, root / "bundle", tmp_path / "x", 1, settings, threads=1, progress=False,
+                 embedder=hash_embedder, init_from=root / "bundle", from_locator=True)
