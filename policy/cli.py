@@ -68,7 +68,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                "--init-from runs/pre\n"
                "  sudd pretrain out/views_stack_home --data out/data_stack --out runs/locator --config "
                "policy/bundles/multitask \\\n      --init-from policy/bundles/multitask --goal-locator --steps 3000   "
-               "# a goal locator")
+               "# a goal locator\n"
+               "  sudd pretrain out/views_stack_home --data out/data_stack --out runs/locator128 --config "
+               "policy/bundles/multitask \\\n      --init-from policy/bundles/multitask --from-locator --goal-locator "
+               "--steps 4000 --set 'crop_size=[128,128]'   # the shipped one, on the whole frame")
     pre.add_argument("views", type=Path, nargs="+",
                      help="views directories (sudd views --out), all used: e.g. approach and carrying views")
     pre.add_argument("--data", type=Path, required=True, help="the episode dataset the policy will train on")

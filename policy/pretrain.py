@@ -191,9 +191,13 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
         raise ValueError("a goal locator is a copy of a policy's encoders and head taught the goal query on home views: "
                          "give --init-from the bundle it goes with, and no --episode-share (recorded frames carry "
                          "the policy's labels, not the query's)")
-    if from_locator and not (goal_locator and init_from is not None):
-        raise ValueError("from_locator starts a locator from a bundle's own: give goal_locator (sudd pretrain "
-                         "--goal-locator or --object-locator) and init_from the bundle (--init-from BUNDLE)")
+    if from_locator:
+        from policy.bundle_import import is_bundle
+
+        if not (goal_locator and init_from is not None and is_bundle(init_from)):
+            raise ValueError("from_locator starts a locator from a bundle's own: give goal_locator (sudd pretrain "
+                             f"--goal-locator or --object-locator) and init_from the bundle (--init-from BUNDLE; got "
+                             f"{init_from})")
     if head_only and init_from is None:
         raise ValueError("head_only trains the aux head on the encoders of an earlier pretrain run: give init_from "
                          "(sudd pretrain --head-only --init-from PRETRAIN_RUN)")

@@ -205,3 +205,6 @@ def test_a_locator_goes_on_from_a_bundles_own_locator(located, tmp_path):
     with pytest.raises(ValueError, match="from_locator"):
         pretrain(root / "views", data, root / "bundle", tmp_path / "x", 1, settings, threads=1, progress=False,
                  embedder=hash_embedder, init_from=root / "bundle", from_locator=True)
+    with pytest.raises(ValueError, match="from_locator"):  # a pretrain run has no locator graph to go on from
+        pretrain(root / "views", data, root / "bundle", tmp_path / "y", 1, settings, threads=1, progress=False,
+                 embedder=hash_embedder, init_from=tmp_path / "on", goal_locator=True, from_locator=True)
