@@ -48,8 +48,7 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
     model.eval()
     asked = model if locator is None else locator.eval()
     # the frames as the asked model crops them: a locator may read the whole frame (goal_locator.check_compatible)
-    asked_ds = ds if asked.cfg.crop_size == cfg.crop_size else _first_frames(
-        data, asked.cfg, normalizer, embedder, ticks, lambda *_: False)[0]
+    asked_ds = ds if asked.cfg.crop_size == cfg.crop_size else _dataset(data, asked.cfg, normalizer, embedder)
     queried, head_release, truth = [], [], []
     for k, rows in sorted(first.items()):
         batch = finish_images(default_collate([ds[i] for i in rows]))
@@ -121,15 +120,20 @@ def measure_object(locator, normalizer, data, family: str = "drawer_put", stage:
 def _first_frames(data, cfg, normalizer, embedder, ticks: int, keep) -> tuple:
     """(the dataset of `data` as `cfg` reads it, {episode: its samples whose newest frame is one of the first
     `ticks`}) for the episodes `keep(ds, k)` accepts: the frames a query at the start is asked about."""
-    from policy.data import PolicyDataset
-
-    ds = PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
-                       max_cache_bytes=0)
+    ds = _dataset(data, cfg, normalizer, embedder)
     first: dict[int, list[int]] = {}
     for i, (k, s) in enumerate(ds.index):
         if 0 <= s + cfg.obs_horizon - 1 < ticks and keep(ds, k):
             first.setdefault(k, []).append(i)
     return ds, first
+
+
+def _dataset(data, cfg, normalizer, embedder):
+    """`data`'s samples as `cfg` reads them (its crop, its horizon), unaugmented, images as uint8."""
+    from policy.data import PolicyDataset
+
+    return PolicyDataset(data, cfg, train=False, normalizer=normalizer, embedder=embedder, uint8_images=True,
+                         max_cache_bytes=0)
 
 
 def _embedder(embedder):
