@@ -46,7 +46,6 @@ KINDS = {
     "gripper_force": (INFO, "gripper force clamped to its limit (N)"),
     "gripper_open_held": (WARNING, "gripper opening held: the fingers would open into a keep-out box here "
                                    "(closure wanted / now)"),
-    "gripper_release_held": (INFO, "letting go of the grasp held while the arm moves (TCP speed, m/s)"),
 }
 
 

@@ -82,11 +82,6 @@ class ControllerConfig:
         "again (runtime/controller/gripper.py)")))
     reopen_hold: float = field(default=2.0, metadata=spec(0.0, 10.0, "s", doc=(
         "after an empty close, the policy's close is ignored until its channel reads open or this long")))
-    release_max_speed: float = field(default=0.0, metadata=spec(0.0, 1.0, "m/s", doc=(
-        "an opening from the grasp is held while the measured TCP moves faster than this (the object is let go "
-        "where the arm comes to rest, not thrown); 0 (the default): off")))
-    release_max_wait: float = field(default=1.0, metadata=spec(0.0, 10.0, "s", doc=(
-        "the most an opening is held for release_max_speed; after it the fingers open whatever the speed")))
     gripper_speed: float = field(default=0.08, metadata=spec(0.0, 0.15, "m/s"))
     gripper_force: float = field(default=40.0, metadata=spec(0.0, 235.0, "N"))
     contact_yield_n: float = field(default=0.0, metadata=spec(0.0, 140.0, "N", doc=(

@@ -24,12 +24,6 @@ new opening would reach into a keep-out box where the arm is (`may_open`, the fi
 command raises it only as the gripper reports its fingers closed (asked every `CHECK_PERIOD_S` from
 `SETTLE_S` after the command until they stop): fingers that close on an object stop at its width.
 
-An opening from the grasp waits while the arm moves fast (`release_max_speed`, measured TCP speed from
-`tcp_speed()`, at most `release_max_wait`). Why: the collector lets go at rest over the goal, and the distilled
-policy's opening can come while the arm is still travelling: on stack the block then flew 2-4 cm past the
-point the chunk aimed at (policy/EXPERIMENTS.md, "Letting go at rest"). Held, the fingers open where the
-arm slows down, which the chunk's approach does at its aim.
-
 Units: the driver speaks normalised registers (position 0 open .. 1 closed, speed/force 0..1); safety's
 `limit_gripper` speaks metres, m/s and N. The 2F-85's ranges convert between them.
 """
@@ -56,13 +50,10 @@ BINARY = (0.0, 1.0)  # open and closed: the levels of a bundle that records none
 
 
 class GripperChannel:
-    def __init__(self, gripper, limits, config, may_open=None, tcp_speed=None):
-        """`may_open(closure)`: whether the fingers may open to that closure now (None: always).
-        `tcp_speed()`: the measured TCP speed (m/s) now, asked only while an opening from the grasp waits on
-        `release_max_speed` (None: never waits)."""
+    def __init__(self, gripper, limits, config, may_open=None):
+        """`may_open(closure)`: whether the fingers may open to that closure now (None: always)."""
         self.gripper, self.limits, self.cfg = gripper, limits, config
-        self.may_open, self.tcp_speed = may_open, tcp_speed
-        self._release_asked_at: float | None = None  # when the policy first asked to open the standing grasp
+        self.may_open = may_open
         self.closure_bound = 0.0  # the least closure the fingers can have until the next command (0: open)
         self._closing_to: float | None = None  # the closure of a close whose fingers are still moving
         self._next_bound_check = 0.0
@@ -98,11 +89,8 @@ class GripperChannel:
                               f"the policy's close ignored for up to {cfg.reopen_hold:g} s")
         want = self._level_for(value)
         if want is None or want == self.level:
-            self._release_asked_at = None
             return None
         if self.level is not None and now - self._edge_at < cfg.gripper_min_hold:
-            return None
-        if self._release_waits(want, now, events):
             return None
         opening = STROKE_M * (1.0 - self.levels[want])
         cmd, _ = limit_gripper(self.limits, opening, cfg.gripper_speed, cfg.gripper_force, now, events)
@@ -117,7 +105,6 @@ class GripperChannel:
             return None
         ok = self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE), wait=False)
         if ok:
-            self._release_asked_at = None
             if self.level is not None:  # the first command only sets the state: no hold after it
                 self._edge_at = now
             self.level = want
@@ -131,23 +118,6 @@ class GripperChannel:
                 self._next_bound_check = self._next_check
             return self.closed
         return None
-
-    def _release_waits(self, want: int, now: float, events) -> bool:
-        """Whether an opening of the standing grasp to level `want` waits for the arm to slow down."""
-        if not (self.closed and want < self.level and self.cfg.release_max_speed > 0 and self.tcp_speed
-                and self._reopened_until is None):  # an empty close reopens at once: nothing to throw
-            return False
-        if self._release_asked_at is None:
-            self._release_asked_at = now
-        if now - self._release_asked_at >= self.cfg.release_max_wait:
-            return False
-        speed = float(self.tcp_speed())
-        if not speed > self.cfg.release_max_speed:  # a speed that is not a number never holds the fingers
-            return False
-        if events is not None:
-            events.report("gripper_release_held", now, value=speed, limit=self.cfg.release_max_speed,
-                          message="letting go held while the arm moves (TCP speed / release_max_speed, m/s)")
-        return True
 
     def _track_closure(self, now: float) -> None:
         """Raise the closure bound as a close's fingers are reported closing: from a report taken after the

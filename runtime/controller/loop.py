@@ -71,7 +71,7 @@ class ControllerLoop(LoopRunner):
         lim = safety.limits
         self.timeline = Timeline(cfg, lim.joints)
         self.converter = ChunkConverter(lim.variant, cfg, lim.joints.velocity)
-        self.grip = GripperChannel(gripper, lim, cfg, may_open=safety.fingers_may_open, tcp_speed=self._tcp_speed)
+        self.grip = GripperChannel(gripper, lim, cfg, may_open=safety.fingers_may_open)
         self.contact = ContactYield(cfg, self.converter.kin, self.period)
         self.recovery = RecoveryDriver(safety, arm, hooks, self._emit)
         self.telemetry = Telemetry(cfg.telemetry_size, self.period, cfg.late_tolerance)
@@ -80,7 +80,6 @@ class ControllerLoop(LoopRunner):
         self.last_latency_estimate: float | None = None
         self.ready = False  # True after the first complete cycle
         self.stopped = False  # True after a controlled stop finished
-        self._measured = None  # the ArmState read this cycle (the gripper channel may ask its TCP speed)
         self._lock = threading.RLock()
         self._events: deque = deque(maxlen=cfg.max_events)
         self._pending = None
@@ -174,7 +173,6 @@ class ControllerLoop(LoopRunner):
             self._emit("driver_error", now, f"arm.state() failed: {exc!r}", "error")
             self.telemetry.record(now, period, time.perf_counter() - wall, math.nan, False, False)
             return CycleResult(now, None, None, False, self._cmd_time, None)
-        self._measured = s
         arm_stopped = s.is_protective_stopped
         self.recovery.update(now, arm_stopped)
         if s.is_emergency_stopped and not stops.estopped:  # the robot's e-stop latches ours: after its
@@ -281,13 +279,6 @@ class ControllerLoop(LoopRunner):
             step = self.cfg.latency_slew * self.period
             self.execution_latency += max(-step, min(step, target - self.execution_latency))
         return self.execution_latency
-
-    def _tcp_speed(self) -> float:
-        """The measured TCP's linear speed this cycle (m/s), from the joints' velocity."""
-        s = self._measured
-        if s is None:
-            return math.nan
-        return float(np.linalg.norm(self.converter.kin.jacobian(s.q)[:3] @ np.asarray(s.qd, dtype=float)))
 
     def _fallback_q(self):
         """Where the arm holds when nothing is planned: the filter's commanded joints once it has any."""
