@@ -101,14 +101,16 @@ def sample_pose(home: np.ndarray, grasp: np.ndarray, yaw: float, rng: np.random.
 
 def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout(), fidelity: str = "fast",
                 image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0, task: str = TASK, stage: str = "",
-                at_home: bool = False) -> dict:
+                at_home: bool = False, look: tuple[float, float, float] | None = None) -> dict:
     """`views` labelled views of the heavy-DR `task` scene of `seed` (the same seed always gives the same
     views), then for a family that carries an object (pick_place, stack) up to `carry` views with it in the
     closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails).
     A long task's later `stage` (datagen/views_stages.py) shows the scene as the collector leaves it before
     that grasp, the views on the way there from the last release; `offsets` are that stage's. `at_home`: the
     scene as the episode starts instead (the drawer shut, the arm at home), with the later stage's labels (where
-    the object will be taken from and put), for a question asked at the start (policy/goal_locator.py)."""
+    the object will be taken from and put), for a question asked at the start (policy/goal_locator.py).
+    `look`: the first view with the TCP moved this far from home (base frame, metres; its orientation kept), the
+    pose a goal query looks from (policy/goal_query.py: where home's wrist camera misses part of the table)."""
     if carry:
         check_carries(task)
     index = stage_index(task, stage)
@@ -139,7 +141,11 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             world.data.qpos[world.arm_qpos_adr] = q_home
             world.set_arm_target(q_home)
             world.forward()
+        if look is not None and any(look):
+            _set_arm(world, kin.ik(look_pose(kin.fk(q_home), look), q_home))
         recorder.sample()
+        if look is not None and any(look):
+            _set_arm(world, q_home)
         for _ in range(views - 1):
             for _attempt in range(5):
                 try:
@@ -164,7 +170,36 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             "grasp_yaw": np.full(n, yaw, np.float32), "footprint_period": np.full(n, a.period, np.float32),
             "frame": np.tile(a.frame.astype(np.float32), (n, 1, 1)), "task": [task] * n, "stage": [stage] * n,
             "seed": np.full(n, seed, np.int64), "instruction": [ep.instruction] * n,
-            "at_home": np.full(n, bool(at_home))}
+            "at_home": np.full(n, bool(at_home)),
+            "look": np.tile(np.asarray(look if look is not None else (0.0, 0.0, 0.0), np.float32), (n, 1))}
+
+
+def look_view(task: str, seed: int, look, holdout: Holdout = Holdout(), fidelity: str = "fast", dr: str = "heavy",
+              image_size: tuple[int, int] = IMAGE_SIZE) -> tuple[dict, np.ndarray]:
+    """The `task` scene of `seed` as its episode starts, seen with the TCP at home + `look`: ({camera: (1, H, W, 3)
+    uint8}, (1, PROPRIO_DIM) proprio), as `scene_views(..., look=look)` renders its first view."""
+    ep = build_episode(task, seed, dr, fidelity, holdout=holdout)
+    recorder = Recorder(ep, image_size=image_size)
+    try:
+        q_home = ep.world.arm_q()
+        _set_arm(ep.world, recorder.kin.ik(look_pose(recorder.kin.fk(q_home), look), q_home))
+        recorder.sample()
+        return recorder.observations()
+    finally:
+        recorder.close()
+
+
+def look_pose(home: np.ndarray, look) -> np.ndarray:
+    """The 4x4 TCP pose `look` (x, y, z metres, base frame) from the `home` pose, its orientation kept."""
+    T = np.array(home, np.float64, copy=True)
+    T[:3, 3] += np.asarray(look, np.float64)
+    return T
+
+
+def _set_arm(world, q) -> None:
+    world.data.qpos[world.arm_qpos_adr] = q
+    world.set_arm_target(q)
+    world.forward()
 
 
 def _carry_views(ep, recorder, seed: int, views: int, target: str, grasp, release, yaw: float, q_home) -> None:
@@ -189,7 +224,8 @@ def _carry_views(ep, recorder, seed: int, views: int, target: str, grasp, releas
 
 def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdout: Holdout = Holdout(),
              progress: bool = True, image_size: tuple[int, int] = IMAGE_SIZE, carry: int = 0,
-             task: str = TASK, stage: str = "", at_home: bool = False) -> list[Path]:
+             task: str = TASK, stage: str = "", at_home: bool = False,
+             look: tuple[float, float, float] | None = None) -> list[Path]:
     """Render views of every seed's `task` scene (on the way to its grasp `stage`, datagen/views_stages.py) into
     shards of SHARD scenes under out_dir; returns the shards."""
     from tqdm import tqdm
@@ -201,13 +237,14 @@ def generate(out_dir: str | Path, seeds: range, views: int, offsets: dict, holdo
     key = label_key(task, stage)
     bar = tqdm(total=len(seeds), desc=f"views {key}", unit="scene", disable=not progress)
     for start in starts:
-        path = out / f"views_{key.replace('/', '-')}{'-home' if at_home else ''}_{start:08d}.npz"
+        kind = ("-home" if at_home else "") + ("-look" if look is not None and any(look) else "")
+        path = out / f"views_{key.replace('/', '-')}{kind}_{start:08d}.npz"
         chunk = range(start, min(start + SHARD, seeds.stop))
         if not path.exists():
             parts = []
             for seed in chunk:
                 parts.append(scene_views(seed, views, offsets, holdout, image_size=image_size, carry=carry, task=task,
-                                         stage=stage, at_home=at_home))
+                                         stage=stage, at_home=at_home, look=look))
                 bar.update(1)
             text = ("instruction", "task", "stage")
             merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in text}
@@ -266,6 +303,7 @@ def load(views_dir: str | Path | list, offsets: dict | None = None) -> dict:
         p.setdefault("task", np.array([task] * n))
         p.setdefault("stage", np.array([""] * n))
         p.setdefault("at_home", np.zeros(n, bool))  # shards from before at_home views: on the way to their stage
+        p.setdefault("look", np.zeros((n, 3), np.float32))  # shards from before look views: the first view at home
         p.setdefault("frame", np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)))
         if offsets is not None:
             if key not in offsets:

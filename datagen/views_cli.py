@@ -19,6 +19,8 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from policy.goal_query import MAX_LOOK_M  # the goal query's limit: these views are its locator's
+
     v = sub.add_parser(
         "views", help="render labelled views of DR scenes for encoder pretraining (sudd pretrain)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -37,6 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--at-home", action="store_true",
                    help="with --stage object: the scene as the episode starts (drawer shut, arm at home) with the "
                         "object stage's labels, for an object locator (sudd pretrain --object-locator)")
+    v.add_argument("--look", default="", metavar="DX,DY,DZ",
+                   help="render each scene's first view with the TCP this far from home (metres, base frame, each "
+                        f"within {MAX_LOOK_M} m; e.g. 0.15,0.08,0.1): the look pose of a goal locator "
+                        "(sudd pretrain --goal-locator) that asks from there, where home's wrist camera misses "
+                        "part of the table")
     v.add_argument("--out", type=Path, required=True, help="views directory (created; resumed if present)")
     v.add_argument("--scenes", type=int, required=True, help="scenes to render (one seed each)")
     v.add_argument("--views", type=int, default=6, help="views per scene, the first at home (default 6)")
@@ -73,14 +80,19 @@ def _views(args) -> int:
             check_carries(args.task)
         except ValueError as exc:
             raise ValueError(f"--carry-views: {exc}; leave it out") from None
+    from policy.goal_query import parse_look
+
+    look = parse_look(args.look) if args.look else None
     key = label_key(args.task, args.stage)
     if args.at_home and stage_index(args.task, args.stage) != 1:
         raise ValueError(f"--at-home labels a later grasp from the start: give --task drawer_put --stage object "
                          f"(got --task {args.task} --stage {args.stage or '(first)'})")
     offsets = measure_offsets(args.offsets_from, key)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
-                      holdout, carry=args.carry_views, task=args.task, stage=args.stage, at_home=args.at_home)
-    summary = {"out": str(args.out), "task": args.task, "stage": key, "at_home": args.at_home, "shards": len(shards),
+                      holdout, carry=args.carry_views, task=args.task, stage=args.stage, at_home=args.at_home,
+                      look=look)
+    summary = {"out": str(args.out), "task": args.task, "stage": key, "at_home": args.at_home,
+               "look_m": list(look) if look else None, "shards": len(shards),
                "scenes": args.scenes,
                "views_per_scene": args.views,
                "carry_views_per_scene": args.carry_views,

@@ -150,8 +150,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         check_pace_table({f: 1.0 for f in goal_query["families"]}, data_info.get("tasks", []), "--goal-query")
         if goal_locator is not None:
             locator, record = load_locator(goal_locator, model.cfg)
+        look = record.get("look_m") if locator is not None else None
         table = measure(model, normalizer, goal_query["data"], list(goal_query["families"]),
-                        goal_query.get("ticks", 3), locator=locator)
+                        goal_query.get("ticks", 3), locator=locator, look=look)
         if locator is not None:
             table["locator_from"] = {"run": str(goal_locator), **record}
         overrides["release_input"] = True

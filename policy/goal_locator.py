@@ -89,6 +89,17 @@ def locator_rows(v: dict, question: str = "goal") -> dict:
     return out
 
 
+def locator_look(rows: dict) -> tuple[float, float, float] | None:
+    """The look offset the locator rows (`locator_rows`) were rendered from (`sudd views --look`), None for home;
+    a ValueError where they mix poses: the locator has no proprio input, so it learns one pose's view."""
+    looks = np.unique(np.round(np.asarray(rows.get("look", np.zeros((1, 3))), np.float64), 4), axis=0)
+    if len(looks) != 1:
+        raise ValueError(f"the locator's views were rendered from {len(looks)} poses ({looks.tolist()}): a locator "
+                         "reads no proprio and answers from one pose; train it on views of one --look (or none)")
+    look = tuple(float(v) for v in looks[0])
+    return look if any(look) else None
+
+
 class LocatorGraph(torch.nn.Module):
     """goal_locator.onnx: raw uint8 frames per camera and the instruction embedding -> the locator head's points
     (B, aux_dim), the grasp slot relative to the gripper over AUX_TCP_SCALE as the obs encoder's aux_points.
@@ -136,8 +147,8 @@ def load_locator(run_dir: str | Path, policy_cfg, question: str = "goal"):
                          f"give a `sudd pretrain --{question}-locator` run")
     locator, cfg, _ = load_run_model(run_dir)
     check_compatible(policy_cfg, cfg)
-    return locator, {**{k: pre[k] for k in ("goal_locator", "locator_question", "views", "view_count", "scenes")
-                        if k in pre}, "crop_size": list(cfg.crop_size)}
+    return locator, {**{k: pre[k] for k in ("goal_locator", "locator_question", "views", "view_count", "scenes",
+                                            "look_m") if k in pre}, "crop_size": list(cfg.crop_size)}
 
 
 def check_compatible(policy_cfg, locator_cfg) -> None:

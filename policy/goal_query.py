@@ -32,6 +32,27 @@ from policy.instruction import goal_clause
 ARTICLES = ("the", "a", "an")
 MAX_OFFSET_M = 0.3  # an offset further than this from the grasp point is no "height over it": a bad measurement
 MAX_TICKS = 20
+MAX_LOOK_M = 0.3  # per axis: a look pose further from home than this is no glance from the start
+
+
+def check_look(look, where: str = "look") -> tuple[float, float, float]:
+    """A look offset (dx, dy, dz) from the start pose's TCP, base frame [m], checked: 3 finite numbers, each
+    within MAX_LOOK_M; a ValueError names `where`."""
+    ok = (isinstance(look, (list, tuple)) and len(look) == 3 and all(isinstance(v, (int, float)) for v in look)
+          and bool(np.all(np.isfinite(look))) and max(abs(float(v)) for v in look) <= MAX_LOOK_M)
+    if not ok:
+        raise ValueError(f"{where} {look!r}: expected 3 finite numbers dx, dy, dz in metres from the start pose, "
+                         f"each within {MAX_LOOK_M} m")
+    return tuple(float(v) for v in look)
+
+
+def parse_look(text: str) -> tuple[float, float, float]:
+    """"DX,DY,DZ" (metres) -> a checked look offset (check_look)."""
+    try:
+        values = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        raise ValueError(f"--look {text!r}: expected three numbers DX,DY,DZ in metres, e.g. 0.15,0.08,0.1") from None
+    return check_look(values, "--look")
 
 
 def _phrase_after_article(words: list[str]) -> int | None:
@@ -77,6 +98,7 @@ class GoalQuerySpec:
     offset_m: tuple[float, float, float]
     ticks: int
     locator: bool = False  # asked of goal_locator.onnx (policy/goal_locator.py) instead of the obs encoder's head
+    look_m: tuple[float, float, float] | None = None  # asked from the start pose moved this far (runtime/look.py)
 
 
 def query_table(manifest: dict, key: str, needs: str, point: str) -> dict | None:
@@ -115,7 +137,13 @@ def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
     locator = q.get("locator", False)
     if not isinstance(locator, bool):
         raise ValueError(f"manifest goal_query.locator {locator!r}: expected true (asked of goal_locator.onnx) or false")
-    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks, locator)
+    look = q.get("look_m")
+    if look is not None:
+        look = check_look(look, "manifest goal_query.look_m")
+        if not locator:
+            raise ValueError("manifest goal_query.look_m needs locator true: only a goal locator is taught the view "
+                             "from the look pose")
+    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks, locator, look)
 
 
 class GoalQuery:
@@ -139,12 +167,24 @@ class GoalQuery:
         """The point is held from now on (the first `ticks` inferences asked)."""
         return self._query is not None and len(self._points) >= self.spec.ticks
 
+    @property
+    def look(self) -> bool:
+        """Asked from a look pose (runtime/look.py calls `ask` there), not on the policy's first inferences."""
+        return self._query is not None and self.spec.look_m is not None
+
+    def ask(self, images: dict, proprio: np.ndarray, stage: int = 0) -> None:
+        """Ask the question once more about these frames (until `settled`); `point` is the median so far."""
+        if self._query is None or self.settled:
+            return
+        grasp = self.bundle.goal_point(images, proprio, self._query, stage)
+        self._points.append(grasp + np.asarray(self.spec.offset_m))
+        self.point = np.median(np.stack(self._points), axis=0)
+
     def release(self, images: dict, proprio: np.ndarray, stage: int = 0) -> np.ndarray | None:
-        """The (4,) release_point input for this inference (x, y, z base frame, flag 1), or None (the head's)."""
+        """The (4,) release_point input for this inference (x, y, z base frame, flag 1), or None (the head's: no
+        query, or a look that never got its answer)."""
         if self._query is None:
             return None
-        if len(self._points) < self.spec.ticks:
-            grasp = self.bundle.goal_point(images, proprio, self._query, stage)
-            self._points.append(grasp + np.asarray(self.spec.offset_m))
-            self.point = np.median(np.stack(self._points), axis=0)
-        return np.append(self.point, 1.0).astype(np.float32)
+        if not self.look:
+            self.ask(images, proprio, stage)
+        return None if self.point is None else np.append(self.point, 1.0).astype(np.float32)

@@ -26,10 +26,13 @@ from policy.instruction import embed_instructions
 
 
 @torch.no_grad()
-def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedder=None, locator=None) -> dict:
+def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedder=None, locator=None,
+            look=None) -> dict:
     """The manifest's goal_query table for `model` on `data` (module doc); a ValueError when no episode of
     `families` has a command with two objects. locator: a goal locator (policy/goal_locator.py) asked the swapped
-    command in place of `model`'s head; the head's own release point is still `model`'s."""
+    command in place of `model`'s head; the head's own release point is still `model`'s. look: the locator asks
+    from the start pose moved this far (`sudd views --look`); the recorded episodes never stood there, so each
+    episode's scene is rendered from that pose (datagen.views.look_view: the same seed, the same scene)."""
     from policy.data import finish_images
 
     if not 1 <= int(ticks) <= MAX_TICKS:
@@ -54,11 +57,14 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
         batch = finish_images(default_collate([ds[i] for i in rows]))
         asked_batch = batch if asked_ds is ds else finish_images(default_collate([asked_ds[i] for i in rows]))
         swapped = torch.from_numpy(embed_instructions(embedder, [role_swap(ds.instructions[k])], cfg.text_goal))
-        grasp = asked.aux_points(asked.obs_encoder(asked_batch["images"], asked_batch["proprio"],
-                                                   swapped.expand(len(rows), -1)))[:, :3].numpy()
         own = model.aux_points(model.obs_encoder(batch["images"], batch["proprio"], batch["text"]))[:, 3:6].numpy()
         steps = [ds._newest_step(i)[1] for i in rows]
-        poses = np.stack([ds.tcp_pose[k][t][:9] for t in steps])
+        if look is None:
+            grasp = asked.aux_points(asked.obs_encoder(asked_batch["images"], asked_batch["proprio"],
+                                                       swapped.expand(len(rows), -1)))[:, :3].numpy()
+            poses = np.stack([ds.tcp_pose[k][t][:9] for t in steps])
+        else:
+            grasp, poses = _asked_from_look(asked, ds.store.meta(ds.episodes[k]), look, swapped)
         queried.append(np.median(points_from_tcp(grasp[:, None] * AUX_TCP_SCALE, poses)[:, 0], axis=0))
         head_release.append(np.median(own * AUX_TCP_SCALE, axis=0))
         truth.append(ds.aux_points[k][steps[0]][1])
@@ -76,6 +82,7 @@ def measure(model, normalizer, data, families: list[str], ticks: int = 3, embedd
 
     return {"families": list(families), "offset_m": [round(float(v), 4) for v in offset], "ticks": int(ticks),
             **({"locator": True} if locator is not None else {}),
+            **({"look_m": [round(float(v), 4) for v in look]} if look is not None else {}),
             "measured": {"data": str(data), "content_hash": Dataset(data).content_hash(), "episodes": len(truth),
                          "release_cm_median": round(float(np.median(errors)) * 100, 2),
                          "release_cm_p75": round(float(np.percentile(errors, 75)) * 100, 2),
@@ -115,6 +122,23 @@ def measure_object(locator, normalizer, data, family: str = "drawer_put", stage:
     cm = lambda e, q: round(float(np.percentile(e, q)) * 100, 2)  # noqa: E731
     return {"episodes": len(grasp_err), "grasp_cm_median": cm(grasp_err, 50), "grasp_cm_p75": cm(grasp_err, 75),
             "release_cm_median": cm(release_err, 50), "release_cm_p75": cm(release_err, 75)}
+
+
+def _asked_from_look(locator, meta: dict, look, text: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(the locator's grasp points (1, 3) TCP-relative over AUX_TCP_SCALE, the TCP poses (1, 9)) for the recorded
+    episode `meta`'s scene seen from the look pose, through the graph the bundle exports (LocatorGraph)."""
+    from datagen.views import look_view
+    from policy.goal_locator import LocatorGraph
+    from sim.tasks import Holdout
+
+    h = meta.get("holdout") or {}
+    images, proprio = look_view(meta["task"], int(meta["seed"]), look,
+                                Holdout(tuple(h.get("colors", ())), tuple(h.get("shapes", ()))),
+                                meta.get("fidelity") or "fast", image_size=tuple(locator.cfg.image_size))
+    To = locator.cfg.obs_horizon
+    frames = [torch.from_numpy(np.repeat(images[c][None, -1:], To, axis=1)) for c in locator.cfg.cameras]
+    points = LocatorGraph(locator.eval())(*frames, text)
+    return points[:, :3].numpy(), proprio[-1:, :9].astype(np.float64)
 
 
 def _first_frames(data, cfg, normalizer, embedder, ticks: int, keep) -> tuple:

@@ -48,7 +48,7 @@ from datagen.views import measure_offsets
 from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, finish_images, jitter_factors
-from policy.goal_locator import check_question, locator_rows
+from policy.goal_locator import check_question, locator_look, locator_rows
 from policy.grasp_axis import axis_label, period_has_axis, yaw_of
 from policy.instruction import embed_instructions
 from policy.model import DiffusionPolicy, count_params
@@ -88,6 +88,7 @@ class Views:
         row = {t: k for k, t in enumerate(texts)}
         self.text = table[[row[t] for t in v["instruction"].tolist()]]
         self.scenes = int(len(np.unique(v["seed"])))
+        self.look = locator_look(v) if goal_locator else None
 
     def __len__(self) -> int:
         return len(self.aux)
@@ -255,7 +256,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                                       "offsets_m": offsets_m, "head_only": head_only,
                                       "episode_share": episode_share, "episode_tasks": list(episode_tasks),
                                       "goal_locator": goal_locator,
-                                      **({"locator_question": locator_question} if goal_locator else {})})
+                                      **({"locator_question": locator_question} if goal_locator else {}),
+                                      **({"look_m": list(views.look)} if views.look else {})})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
@@ -264,7 +266,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     rng = np.random.default_rng(cfg.seed)
     goal = None
     if goal_locator:
-        goal = _locator_check(locator_question, fit.normalizer, data_dir, views.families, embedder)
+        goal = _locator_check(locator_question, fit.normalizer, data_dir, views.families, embedder, views.look)
         with open(metrics, "a") as f:
             f.write(json.dumps({"step": 0, **goal(model)}) + "\n")
     model.train()
@@ -306,14 +308,14 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     return summary
 
 
-def _locator_check(question: str, normalizer, data_dir, families: list[str], embedder):
+def _locator_check(question: str, normalizer, data_dir, families: list[str], embedder, look=None):
     """model -> the validation row of a locator of `question`: the goal query's error on --data's episodes
     (goal_cm_*), or the object locator's grasp and release errors on its drawer_put episodes (object_*_cm_*)."""
     from policy.goal_query_measure import measure, measure_object
 
     if question == "goal":
         def check(m) -> dict:
-            q = measure(m.eval(), normalizer, data_dir, families, embedder=embedder)["measured"]
+            q = measure(m.eval(), normalizer, data_dir, families, embedder=embedder, look=look)["measured"]
             return {"goal_cm_median": q["release_cm_median"], "goal_cm_p75": q["release_cm_p75"]}
         return check
     family = families[0].partition("/")[0]

@@ -114,3 +114,33 @@ def linked_copy(bundle_dir: str | Path, dst: str | Path) -> Path:
         else:
             (dst / p.name).symlink_to(p.resolve())  # a relative source would dangle from dst
     return dst
+
+
+class StillBundle:
+    """A bundle stand-in for run_policy_episode with a goal query (`look`: asked from that look pose,
+    runtime/look.py): every chunk holds the arm where it is, hand open; it keeps what it was asked and given:
+    the questions' instructions and TCP positions, the TCP at each chunk and each chunk's release input."""
+
+    cameras, obs_horizon, image_size, execute = ("scene", "wrist"), 1, (128, 128), slice(0, 8)
+    manifest = {"horizons": {"control_hz": 10.0}}
+
+    def __init__(self, families=("pick_place",), look=None):
+        from policy.goal_query import GoalQuerySpec
+
+        self.goal_query = GoalQuerySpec(tuple(families), (0.0, 0.0, 0.05), 3, look is not None, look)
+        self.asked, self.asked_at, self.acted_at, self.releases = [], [], [], []
+
+    def embed(self, text):
+        return np.frombuffer(text.encode().ljust(384)[:384], np.uint8).astype(np.float32)
+
+    def goal_point(self, images, proprio, emb, stage=0):
+        self.asked.append(emb)
+        self.asked_at.append(np.array(proprio[-1, :3]))
+        return np.array([0.1, 0.4 + 0.01 * len(self.asked), 0.02], np.float32)
+
+    def act(self, images, proprio, emb, rng=None, stage=0, **given):
+        self.acted_at.append(np.array(proprio[-1, :3]))
+        self.releases.append(given.get("release"))
+        chunk = np.repeat(np.asarray(proprio, np.float32)[-1:, :10], 16, axis=0)
+        chunk[:, 9] = 0.0
+        return chunk

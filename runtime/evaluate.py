@@ -73,6 +73,8 @@ class EpisodeOutcome:
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
+    look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
+    look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
     object_points: list | None = None  # the object query's object and drop, base frame [m] (policy.object_query)
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
     phase_starts: list[float] = field(default_factory=list)  # with phases: the sim time [s] each one began
@@ -105,6 +107,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
+    from runtime.look import Look
     from runtime.phases import Sequencer
     from sim.twins.rig import SimRig
 
@@ -118,6 +121,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     sequencer = Sequencer(phases, bundle.embed, emb, text) if phases else None
     query = GoalQuery(bundle, text, task, enabled=goal_query)
     objects = ObjectQuery(bundle, text, task, enabled=goal_query)
+    look = Look(query)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -164,14 +168,16 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                     out.phase_starts.append(round(float(rig.world.time), 2))
                     dt_ns = action_period_ns(control_hz, sequencer.speed)
                     per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
+                n_exec = bundle.execute.stop - bundle.execute.start
+                actions = look.chunk(images, proprio, rig.world.gripper_command(), n_exec, dt_ns * 1e-9)
                 release = query.release(images, proprio, stage)
                 given = {} if release is None else {"release": release}  # a policy without the query takes none
                 given.update(objects.inputs(images, proprio, stage))
                 told = stage if sequencer is None else sequencer.stage(stage)
-                actions = None if sequencer is None else sequencer.retreat(
-                    proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN],
-                    bundle.execute.stop - bundle.execute.start, dt_ns * 1e-9)
-                if actions is None:  # the policy's turn (not a phase's retreat to the start)
+                if actions is None and sequencer is not None:
+                    actions = sequencer.retreat(proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN],
+                                                n_exec, dt_ns * 1e-9)
+                if actions is None:  # the policy's turn (not the look, nor a phase's retreat to the start)
                     actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
@@ -194,6 +200,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:
             out.goal_point = [round(float(v), 4) for v in query.point]
+        if look.offset is not None:
+            out.look_seconds = round(look.seconds, 2)
+            out.look_gave_up = look.gave_up
         if objects.points is not None:
             out.object_points = np.round(objects.points, 4).tolist()
         if not out.success:

@@ -208,3 +208,31 @@ def test_a_locator_goes_on_from_a_bundles_own_locator(located, tmp_path):
     with pytest.raises(ValueError, match="from_locator"):  # a pretrain run has no locator graph to go on from
         pretrain(root / "views", data, root / "bundle", tmp_path / "y", 1, settings, threads=1, progress=False,
                  embedder=hash_embedder, init_from=tmp_path / "on", goal_locator=True, from_locator=True)
+
+
+def test_a_locator_taught_from_a_look_pose_is_measured_there_and_its_pose_shipped(located, tmp_path):
+    """`sudd views --look`: the locator learns the view from the look pose; the export measures it on each
+    episode's scene rendered from there (the recordings never stood there) and the manifest names the pose, which
+    the runtime moves to before asking (runtime/look.py). A locator of mixed poses is refused."""
+    from datagen.views import generate
+    from policy.pretrain import pretrain
+
+    root, _ = located
+    look = (0.15, 0.08, 0.1)
+    offsets = {"grasp": np.zeros(3), "release": np.array([0.0, 0.0, 0.06])}
+    generate(tmp_path / "views", range(503, 506), 1, offsets, progress=False, image_size=tuple(TINY["image_size"]),
+             task="stack", look=look)
+    settings = {"lr": 3e-3, "warmup_steps": 1, "val_every": 2, "log_every": 2}
+    summary = pretrain(tmp_path / "views", root / "data", root / "plain", tmp_path / "locator", 2, settings,
+                       threads=1, progress=False, embedder=hash_embedder, init_from=root / "plain", goal_locator=True)
+    assert json.loads((tmp_path / "locator" / "dataset.json").read_text())["pretrain"]["look_m"] == list(look)
+    assert summary["goal_query_before"]["goal_cm_median"] > 0
+    table = export(root / "plain", tmp_path / "bundle", cache_dir=CACHE, goal_locator=tmp_path / "locator",
+                   goal_query={"families": ["stack"], "data": root / "data", "ticks": 2})["goal_query"]
+    assert table["look_m"] == list(look) and table["locator_from"]["look_m"] == list(look)
+    home = json.loads((root / "bundle" / "manifest.json").read_text())["goal_query"]
+    assert "look_m" not in home and table["measured"]["episodes"] == home["measured"]["episodes"]  # the same ones
+    assert Bundle.load(tmp_path / "bundle").goal_query.look_m == look
+    with pytest.raises(ValueError, match="2 poses"):
+        pretrain([tmp_path / "views", root / "views"], root / "data", root / "plain", tmp_path / "mixed", 1, settings,
+                 threads=1, progress=False, embedder=hash_embedder, init_from=root / "plain", goal_locator=True)

@@ -17,7 +17,7 @@ from policy.graph_frames import with_release
 from policy.model import prepare_images
 from policy.parity import STEP_TOL
 from policy.stage import with_stage
-from policy.testing import STACK, goal_query_run, linked_copy, random_observation, synthetic_dataset
+from policy.testing import STACK, StillBundle, goal_query_run, linked_copy, random_observation, synthetic_dataset
 from runtime.bench_runtime import test_cache_dir as cache_dir
 
 CACHE = cache_dir()
@@ -192,36 +192,10 @@ def test_the_measure_refuses_data_without_two_object_commands_and_a_head_far_off
     shutil.rmtree(data)
 
 
-class _Still:
-    """A bundle stand-in for run_policy_episode that holds the arm where it is and keeps what it was given."""
-
-    cameras, obs_horizon, image_size, execute = ("scene", "wrist"), 1, (128, 128), slice(0, 8)
-    manifest = {"horizons": {"control_hz": 10.0}}
-
-    def __init__(self, families=("pick_place",)):
-        from policy.goal_query import GoalQuerySpec
-
-        self.goal_query = GoalQuerySpec(tuple(families), (0.0, 0.0, 0.05), 3)
-        self.asked, self.releases = [], []
-
-    def embed(self, text):
-        return np.frombuffer(text.encode().ljust(384)[:384], np.uint8).astype(np.float32)
-
-    def goal_point(self, images, proprio, emb, stage=0):
-        self.asked.append(emb)
-        return np.array([0.1, 0.4 + 0.01 * len(self.asked), 0.02], np.float32)
-
-    def act(self, images, proprio, emb, rng=None, stage=0, **given):
-        self.releases.append(given.get("release"))
-        chunk = np.repeat(np.asarray(proprio, np.float32)[-1:, :10], 16, axis=0)
-        chunk[:, 9] = 0.0
-        return chunk
-
-
 def test_an_episode_asks_the_swapped_command_then_conditions_every_chunk_on_the_held_point():
     from runtime.evaluate import run_policy_episode
 
-    still = _Still()
+    still = StillBundle()
     out = run_policy_episode(still, "pick_place", 100_003, command=STACK, time_limit_factor=0.05, latency_s=0.006)
     assert len(still.asked) == 3 and len(still.releases) > 3
     np.testing.assert_array_equal(still.asked[0], still.embed("stack the blue block on the red block"))
@@ -229,11 +203,11 @@ def test_an_episode_asks_the_swapped_command_then_conditions_every_chunk_on_the_
     assert all(r is not None and r[3] == 1.0 for r in still.releases)
     np.testing.assert_allclose(still.releases[-1][:3], held, atol=1e-6)
     np.testing.assert_allclose(out.goal_point, held, atol=1e-4)
-    off = _Still()
+    off = StillBundle()
     out = run_policy_episode(off, "pick_place", 100_003, command=STACK, time_limit_factor=0.05, latency_s=0.006,
                              goal_query=False)
     assert not off.asked and all(r is None for r in off.releases) and out.goal_point is None
-    other = _Still(families=("stack",))  # the family the episode is of is not listed
+    other = StillBundle(families=("stack",))  # the family the episode is of is not listed
     run_policy_episode(other, "pick_place", 100_003, command=STACK, time_limit_factor=0.05, latency_s=0.006)
     assert not other.asked and all(r is None for r in other.releases)
 

@@ -145,6 +145,7 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.goal_query import GoalQuery
+    from runtime.look import Look
     from policy.object_query import ObjectQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
@@ -200,7 +201,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
-        current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None}
+        current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None, "look": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -225,6 +226,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current.update(text=text, emb=bundle.embed(text),
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
+                    current["look"] = Look(current["query"])
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -236,7 +238,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                       f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
-                    current.update(text=None, emb=None, query=None, objects=None, phases=None)
+                    current.update(text=None, emb=None, query=None, objects=None, phases=None, look=None)
                     why = ("the bundle records no trained instructions" if best is None else
                            f"closest trained instruction '{best}' has cosine {cos:.2f} < "
                            f"{cfg.similarity_threshold:.2f}")
@@ -289,12 +291,18 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                               speed=seq.speed)
                     q, objects = current["query"], current["objects"]
                     settled, found = q.settled, len(objects.answers)
+                    n_exec, request = bundle.execute.stop - bundle.execute.start, 0.0 if g is None else g[1]
+                    look, looking = current["look"], current["look"].active
+                    a = look.chunk(imgs, prop, request, n_exec, dt_ns * 1e-9)
+                    if looking and not look.active:  # once per command that looks
+                        event("policy_look", "warning" if look.gave_up else "info",
+                              f"look pose {'never reached: the head answers' if look.gave_up else 'done'} after "
+                              f"{look.seconds:.1f} s", seconds=look.seconds, gave_up=look.gave_up)
                     given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
                     told = stage if seq is None else seq.stage(stage)  # a phase's own count (runtime.phases)
-                    a = None if seq is None else seq.retreat(prop[-1], 0.0 if g is None else g[1],
-                                                             prop[-1][GRIPPER_COLUMN],
-                                                             bundle.execute.stop - bundle.execute.start, dt_ns * 1e-9)
-                    if a is None:  # the policy's turn (not a phase's retreat to the start)
+                    if a is None and seq is not None:
+                        a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
+                    if a is None:  # the policy's turn (not the look, nor a phase's retreat to the start)
                         a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
