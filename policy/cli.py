@@ -258,7 +258,9 @@ def _pretrain(args) -> int:
     if args.goal_locator:
         b = summary["goal_query_before"]
         print(json.dumps(summary, indent=2) if args.json else
-              f"goal locator {summary['run_dir']} ({summary['views']} home views): the goal query's release point "
+              f"goal locator {summary['run_dir']} ({summary['views']} views from "
+              f"{'the look pose ' + str(summary['look_m']) if summary.get('look_m') else 'home'}): the goal query's "
+              f"release point "
               f"on {args.data} {b['goal_cm_median']:.2f} -> {val['goal_cm_median']:.2f} cm off (median; p75 "
               f"{b['goal_cm_p75']:.2f} -> {val['goal_cm_p75']:.2f}); next: sudd export {args.init_from} --out BUNDLE "
               f"--goal-query FAMILY --goal-query-data DATA --goal-locator {summary['run_dir']}")

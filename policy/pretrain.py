@@ -299,7 +299,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     checks = [r for r in rows if "val_loss" in r or "goal_cm_median" in r or "object_grasp_cm_median" in r]
     losses = [r["loss"] for r in rows if "loss" in r]
     summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"],
-               "views": len(views), "scenes": views.scenes,
+               "views": len(views), "scenes": views.scenes, "look_m": list(views.look) if views.look else None,
                "params": count_params(model), "checkpoint": str(checkpoint), "final_loss": losses[-1],
                "validation": checks[-1] if checks else None,
                **({"goal_query_before": checks[0]} if goal_locator else {}),

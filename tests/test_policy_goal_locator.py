@@ -226,7 +226,7 @@ def test_a_locator_taught_from_a_look_pose_is_measured_there_and_its_pose_shippe
     summary = pretrain(tmp_path / "views", root / "data", root / "plain", tmp_path / "locator", 2, settings,
                        threads=1, progress=False, embedder=hash_embedder, init_from=root / "plain", goal_locator=True)
     assert json.loads((tmp_path / "locator" / "dataset.json").read_text())["pretrain"]["look_m"] == list(look)
-    assert summary["goal_query_before"]["goal_cm_median"] > 0
+    assert summary["goal_query_before"]["goal_cm_median"] > 0 and summary["look_m"] == list(look)
     table = export(root / "plain", tmp_path / "bundle", cache_dir=CACHE, goal_locator=tmp_path / "locator",
                    goal_query={"families": ["stack"], "data": root / "data", "ticks": 2})["goal_query"]
     assert table["look_m"] == list(look) and table["locator_from"]["look_m"] == list(look)
