@@ -169,16 +169,17 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                     dt_ns = action_period_ns(control_hz, sequencer.speed)
                     per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
                 n_exec = bundle.execute.stop - bundle.execute.start
+                # the look's moves first: no query is asked of the frames on its way (they are not the start's)
                 actions = look.chunk(images, proprio, rig.world.gripper_command(), n_exec, dt_ns * 1e-9)
-                release = query.release(images, proprio, stage)
-                given = {} if release is None else {"release": release}  # a policy without the query takes none
-                given.update(objects.inputs(images, proprio, stage))
-                told = stage if sequencer is None else sequencer.stage(stage)
-                if actions is None and sequencer is not None:
-                    actions = sequencer.retreat(proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN],
-                                                n_exec, dt_ns * 1e-9)
-                if actions is None:  # the policy's turn (not the look, nor a phase's retreat to the start)
-                    actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
+                if actions is None:
+                    release = query.release(images, proprio, stage)
+                    given = {} if release is None else {"release": release}  # a policy without the query: none
+                    given.update(objects.inputs(images, proprio, stage))
+                    told = stage if sequencer is None else sequencer.stage(stage)
+                    actions = None if sequencer is None else sequencer.retreat(
+                        proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
+                    if actions is None:  # the policy's turn (not a phase's retreat to the start)
+                        actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s

@@ -93,9 +93,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                           "TASK=F,...: those families (\"*=F\" the others), e.g. --speed drawer_close=0.4,*=0.8")
     run.add_argument("--no-goal-query", action="store_true",
                      help="condition on the policy's own release point where the bundle asks its head where a "
-                          "stack goes (the manifest's goal_query; policy/goal_query.py: the shipped bundle stacks "
+                          "stack goes (the manifest's goal_query; policy/goal_query.py: step 23's bundle stacked "
                           "8/20 with it, 1/20 without), and where a bundle has an object query its locator's "
-                          "points for a long task's later object (policy/object_query.py)")
+                          "points for a long task's later object (policy/object_query.py); with it goes the "
+                          "goal query's look (the shipped bundle's stack: the arm to a pose 10 cm up and back, "
+                          "~4 s, before the policy's first chunk; runtime/look.py)")
     run.add_argument("--phases", action=argparse.BooleanOptionalAction, default=None,
                      help=f"{phases.HELP}: the shipped bundle's drawer_put (policy/EXPERIMENTS.md, \"drawer_put's "
                           "object from the start\")")

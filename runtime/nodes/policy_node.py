@@ -298,12 +298,13 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         event("policy_look", "warning" if look.gave_up else "info",
                               f"look pose {'never reached: the head answers' if look.gave_up else 'done'} after "
                               f"{look.seconds:.1f} s", seconds=look.seconds, gave_up=look.gave_up)
-                    given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
-                    told = stage if seq is None else seq.stage(stage)  # a phase's own count (runtime.phases)
-                    if a is None and seq is not None:
-                        a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
-                    if a is None:  # the policy's turn (not the look, nor a phase's retreat to the start)
-                        a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
+                    if a is None:  # past the look: no query is asked of the frames on its way
+                        given = {"release": q.release(imgs, prop, stage), **objects.inputs(imgs, prop, stage)}
+                        told = stage if seq is None else seq.stage(stage)  # a phase's own count (runtime.phases)
+                        if seq is not None:
+                            a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
+                        if a is None:  # the policy's turn (not a phase's retreat to the start)
+                            a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
