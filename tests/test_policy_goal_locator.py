@@ -233,6 +233,8 @@ def test_a_locator_taught_from_a_look_pose_is_measured_there_and_its_pose_shippe
     home = json.loads((root / "bundle" / "manifest.json").read_text())["goal_query"]
     assert "look_m" not in home and table["measured"]["episodes"] == home["measured"]["episodes"]  # the same ones
     assert Bundle.load(tmp_path / "bundle").goal_query.look_m == look
+    kept = export(root / "plain", tmp_path / "kept", cache_dir=CACHE, queries_from=tmp_path / "bundle")
+    assert kept["goal_query"]["look_m"] == list(look)  # a later denoiser keeps asking from where it was taught
     with pytest.raises(ValueError, match="2 poses"):
         pretrain([tmp_path / "views", root / "views"], root / "data", root / "plain", tmp_path / "mixed", 1, settings,
                  threads=1, progress=False, embedder=hash_embedder, init_from=root / "plain", goal_locator=True)
