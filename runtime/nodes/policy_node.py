@@ -145,10 +145,10 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.goal_query import GoalQuery
-    from runtime.look import Look
     from policy.object_query import ObjectQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
+    from runtime.look import Look
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
