@@ -113,6 +113,7 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     pose a goal query looks from (policy/goal_query.py: where home's wrist camera misses part of the table)."""
     if carry:
         check_carries(task)
+    look = look if look is not None and any(look) else None  # (0, 0, 0) is home
     index = stage_index(task, stage)
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
@@ -141,10 +142,10 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
             world.data.qpos[world.arm_qpos_adr] = q_home
             world.set_arm_target(q_home)
             world.forward()
-        if look is not None and any(look):
-            _set_arm(world, kin.ik(look_pose(kin.fk(q_home), look), q_home))
+        if look is not None:
+            _arm_to_look(world, kin, q_home, look)
         recorder.sample()
-        if look is not None and any(look):
+        if look is not None:
             _set_arm(world, q_home)
         for _ in range(views - 1):
             for _attempt in range(5):
@@ -181,8 +182,7 @@ def look_view(task: str, seed: int, look, holdout: Holdout = Holdout(), fidelity
     ep = build_episode(task, seed, dr, fidelity, holdout=holdout)
     recorder = Recorder(ep, image_size=image_size)
     try:
-        q_home = ep.world.arm_q()
-        _set_arm(ep.world, recorder.kin.ik(look_pose(recorder.kin.fk(q_home), look), q_home))
+        _arm_to_look(ep.world, recorder.kin, ep.world.arm_q(), look)
         recorder.sample()
         return recorder.observations()
     finally:
@@ -194,6 +194,11 @@ def look_pose(home: np.ndarray, look) -> np.ndarray:
     T = np.array(home, np.float64, copy=True)
     T[:3, 3] += np.asarray(look, np.float64)
     return T
+
+
+def _arm_to_look(world, kin, q_home, look) -> None:
+    """The arm from `q_home` to the TCP pose `look` away (look_pose), the IK seeded at home."""
+    _set_arm(world, kin.ik(look_pose(kin.fk(q_home), look), q_home))
 
 
 def _set_arm(world, q) -> None:

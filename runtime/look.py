@@ -31,10 +31,8 @@ class Look:
     look pose."""
 
     def __init__(self, query, cfg: Retreat = Retreat(max_seconds=10.0)):
-        spec = getattr(query, "spec", None)
-        look = getattr(spec, "look_m", None) if query.active else None
         self.query, self.cfg = query, cfg
-        self.offset = None if look is None else np.asarray(look, np.float64)
+        self.offset = np.asarray(query.spec.look_m, np.float64) if query.look else None
         self.state = "done" if self.offset is None else "go"
         self.start: np.ndarray | None = None  # (9,) the TCP pose the command started from
         self.seconds = 0.0  # spent looking, back included

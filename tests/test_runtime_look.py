@@ -53,7 +53,7 @@ def test_an_episode_asks_from_the_look_pose_and_the_policy_starts_back_at_the_st
 class _Query:
     """A goal query stand-in with a look pose whose answers never come (the arm never gets there)."""
 
-    active, settled, point = True, False, None
+    active, look, settled, point = True, True, False, None
     spec = GoalQuerySpec(("stack",), (0.0, 0.0, 0.0), 3, True, LOOK)
 
     def ask(self, images, proprio):
@@ -72,6 +72,7 @@ def test_a_look_pose_never_reached_is_given_up_and_the_arm_sent_back():
 
 def test_a_query_without_a_look_pose_looks_nowhere():
     class Plain(_Query):
+        look = False
         spec = GoalQuerySpec(("stack",), (0.0, 0.0, 0.0), 3, True, None)
 
     look = Look(Plain())
