@@ -30,6 +30,7 @@ from runtime.bus import ARM_STATE, POLICY_CHUNK, Bus, BusConfig, camera_color
 from sim.camera_model import Intrinsics
 
 FRAME_TARGET_P50_MS = 0.3
+ARRIVAL_TIMEOUT_S = 2.0  # a hop not back by then counts as lost
 
 
 def _frame() -> m.CameraFrame:
@@ -47,10 +48,20 @@ def _chunk() -> m.ActionChunk:
     return m.ActionChunk(actions=np.zeros((16, 10)), times_ns=np.arange(1, 17) * 10_000_000, obs_time_ns=0)
 
 
-def _hops(pub_bus: Bus, sub_bus: Bus, topic: str, msg: m.Message, n: int, warmup: int, gap_s: float) -> list[float]:
-    """Latencies (ms) of `n` hops after `warmup` unrecorded ones."""
+def _lost_too_many(lost: int, n: int, what: str) -> None:
+    """A dropped message is the DROP topics' design (a queue full under load, bus_topics.py): it is counted and
+    the ping goes on; more than a tenth of them lost is a broken bus, not a busy machine."""
+    if lost > max(2, n // 10):
+        raise RuntimeError(f"{lost} of {n} {what} did not arrive within {ARRIVAL_TIMEOUT_S:g} s each: the "
+                           "sessions are not passing messages")
+
+
+def _hops(pub_bus: Bus, sub_bus: Bus, topic: str, msg: m.Message, n: int, warmup: int,
+          gap_s: float) -> tuple[list[float], int]:
+    """Latencies (ms) of the hops that arrived of `n` after `warmup` unrecorded ones, and how many were lost."""
     arrived, sent = threading.Event(), {}
     recv: dict[int, int] = {}
+    lost = 0
 
     def on_msg(got: m.Message) -> None:
         recv[got.seq] = time.perf_counter_ns()
@@ -66,19 +77,21 @@ def _hops(pub_bus: Bus, sub_bus: Bus, topic: str, msg: m.Message, n: int, warmup
             t0 = time.perf_counter_ns()
             seq = pub.publish(msg)
             sent[seq] = t0
-            if not arrived.wait(2.0):
-                raise RuntimeError(f"message {seq} on {topic} did not arrive within 2 s")
+            if not arrived.wait(ARRIVAL_TIMEOUT_S):
+                lost += 1
+                _lost_too_many(lost, warmup + n, f"messages on {topic}")
             if gap_s:
                 time.sleep(gap_s)
     finally:
         sub.close()
     seqs = sorted(sent)[warmup:]
-    return [(recv[s] - sent[s]) * 1e-6 for s in seqs if s in recv]
+    return [(recv[s] - sent[s]) * 1e-6 for s in seqs if s in recv], sum(s not in recv for s in seqs)
 
 
-def _raw_hops(pub_bus: Bus, sub_bus: Bus, payload: bytes, n: int, warmup: int) -> list[float]:
+def _raw_hops(pub_bus: Bus, sub_bus: Bus, payload: bytes, n: int, warmup: int) -> tuple[list[float], int]:
     """The same ping with plain Zenoh puts of bytes (no codec, no checks): the floor under `_hops`."""
     arrived, recv = threading.Event(), [0]
+    lost = lost_counted = 0
 
     def on_sample(sample) -> None:
         sample.payload.to_bytes()
@@ -95,23 +108,27 @@ def _raw_hops(pub_bus: Bus, sub_bus: Bus, payload: bytes, n: int, warmup: int) -
             arrived.clear()
             t0 = time.perf_counter_ns()
             pub.put(payload)
-            if not arrived.wait(2.0):
-                raise RuntimeError("raw zenoh message did not arrive within 2 s")
-            if i >= warmup:
+            if not arrived.wait(ARRIVAL_TIMEOUT_S):
+                lost += 1
+                lost_counted += i >= warmup
+                _lost_too_many(lost, warmup + n, "raw zenoh messages")
+            elif i >= warmup:
                 out.append((recv[0] - t0) * 1e-6)
     finally:
         sub.undeclare()
         pub.undeclare()
-    return out
+    return out, lost_counted
 
 
-def _percentiles(runs: list[list[float]]) -> dict:
+def _percentiles(measured: list[tuple[list[float], int]]) -> dict:
+    runs = [r for r, _ in measured]
     out = {}
     for q in (50, 90, 99):
         per_run = [float(np.percentile(r, q)) for r in runs]
         out[f"p{q}_ms"] = round(statistics.median(per_run), 4)
     out["p50_ms_per_run"] = [round(float(np.percentile(r, 50)), 4) for r in runs]
-    out["samples_per_run"] = len(runs[0])
+    out["samples_per_run"] = min(len(r) for r in runs)
+    out["lost"] = sum(lost for _, lost in measured)  # dropped under load (DROP topics), not timed
     return out
 
 
@@ -191,9 +208,9 @@ def format_table(result: dict) -> str:
     mach = result["machine"]
     lines = [f"bus bench{' (quick)' if result['quick'] else ''}: {mach['cpu_affinity']}/{mach['cpu_count']} CPUs, "
              f"load {mach['loadavg_1min']}, SHM {'yes' if result['shm_available'] else 'no'}", "",
-             f"{'hop (encode+put+receive+decode)':34s} {'p50 ms':>8s} {'p90 ms':>8s} {'p99 ms':>8s}"]
+             f"{'hop (encode+put+receive+decode)':34s} {'p50 ms':>8s} {'p90 ms':>8s} {'p99 ms':>8s} {'lost':>5s}"]
     for name, h in result["hop"].items():
-        lines.append(f"{name:34s} {h['p50_ms']:8.3f} {h['p90_ms']:8.3f} {h['p99_ms']:8.3f}")
+        lines.append(f"{name:34s} {h['p50_ms']:8.3f} {h['p90_ms']:8.3f} {h['p99_ms']:8.3f} {h['lost']:5d}")
     lines += ["", f"{'codec':34s} {'bytes':>8s} {'enc us':>8s} {'dec us':>8s}"]
     for name, c in result["codec"].items():
         lines.append(f"{name:34s} {c['bytes']:8d} {c['encode_us']:8.1f} {c['decode_us']:8.1f}")
