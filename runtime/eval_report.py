@@ -72,6 +72,8 @@ def summarise(records: list[dict]) -> list[dict]:
                      "release_off_cm": {"success": _last_release_cm(ok), "target_not_placed": _last_release_cm(tnp)},
                      "release_aim_off_cm": {"success": _last_release_cm(ok, "aim_"),
                                             "target_not_placed": _last_release_cm(tnp, "aim_")},
+                     "release_in_hand_cm": {"success": _last_release_in_hand_cm(ok),
+                                            "target_not_placed": _last_release_in_hand_cm(tnp)},
                      "release_over_cm": {"success": _last_release_over_cm(ok),
                                          "target_not_placed": _last_release_over_cm(tnp)},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end"))),
@@ -85,6 +87,17 @@ def _last_release_cm(records: list[dict], prefix: str = "") -> float | None:
     none did (or none recorded an aim)."""
     last = [r["releases"][-1] for r in records if r.get("releases")]
     off = [math.hypot(x[f"{prefix}dx_cm"], x[f"{prefix}dy_cm"]) for x in last if x.get(f"{prefix}dx_cm") is not None]
+    return median(off) if off else None
+
+
+def _last_release_in_hand_cm(records: list[dict]) -> float | None:
+    """Median over the records that let go of the named object: how far (horizontally) it sat from the TCP in
+    the fingers as it last left them (where it left them minus where the TCP was). Why: a block let go off its
+    goal was either aimed off or held off centre, and only the first is the aim's fault; None when none
+    recorded the TCP."""
+    last = [r["releases"][-1] for r in records if r.get("releases")]
+    off = [math.hypot(x["dx_cm"] - x["tcp_dx_cm"], x["dy_cm"] - x["tcp_dy_cm"]) for x in last
+           if x.get("dx_cm") is not None and x.get("tcp_dx_cm") is not None]
     return median(off) if off else None
 
 
@@ -120,8 +133,8 @@ def failure_table(rows: list[dict]) -> str:
              + " | force stops: TCP speed at the stop (median); how many with the fingers closed "
              "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
              "| target_not_placed: the object ended "
-             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; stack: how high "
-             "over resting on the other) "
+             "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; how far off "
+             "the TCP the fingers held it; stack: how high over resting on the other) "
              f"| drawer opened (>= {OPEN_FRACTION:.0%} of its travel) |",
              "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 6)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
@@ -136,7 +149,9 @@ def failure_table(rows: list[dict]) -> str:
         off = (r.get("release_off_cm") or {}).get("target_not_placed")
         aim = (r.get("release_aim_off_cm") or {}).get("target_not_placed")
         over = (r.get("release_over_cm") or {}).get("target_not_placed")
-        cells.append("-" if off is None else f"{off:.1f} cm" + ("" if aim is None else f" (aimed {aim:.1f} cm)")
+        hand = (r.get("release_in_hand_cm") or {}).get("target_not_placed")
+        how = "; ".join(([] if aim is None else [f"aimed {aim:.1f} cm"]) + ([] if hand is None else [f"held {hand:.1f} cm off"]))
+        cells.append("-" if off is None else f"{off:.1f} cm" + (f" ({how})" if how else "")
                      + ("" if over is None else f", {over:.1f} cm over its rest"))
         opened = r.get("failed_drawer_opened")
         cells.append("-" if opened is None else str(opened))

@@ -342,7 +342,8 @@ def test_summary_table_and_chart(tmp_path):
     recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "target_not_placed", "end": "timeout", "target_end": e, "releases": let_go}
              for e, let_go in (("outside", [{"dx_cm": 30.0, "dy_cm": 0.0},
-                                            {"dx_cm": 6.0, "dy_cm": 8.0, "aim_dx_cm": 3.0, "aim_dy_cm": 4.0}]),
+                                            {"dx_cm": 6.0, "dy_cm": 8.0, "aim_dx_cm": 3.0, "aim_dy_cm": 4.0,
+                                             "tcp_dx_cm": 6.0, "tcp_dy_cm": 5.0}]),
                                ("held", []), ("outside", [{"dx_cm": 0.0, "dy_cm": -20.0, "aim_dx_cm": None}]))]
     recs[0]["releases"] = [{"dx_cm": 1.0, "dy_cm": 0.0, "up_cm": 4.0}]
     recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
@@ -369,13 +370,17 @@ def test_summary_table_and_chart(tmp_path):
                       "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
                       "| target_not_placed: the object ended "
                       "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; "
-                      "stack: how high over resting on the other) | drawer opened (>= 80% of its travel) |")
-    # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm)
+                      "how far off the TCP the fingers held it; stack: how high over resting on the other) "
+                      "| drawer opened (>= 80% of its travel) |")
+    # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm) and
+    # where the TCP was
     assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | 17.5 cm/s; 1 closed | - | - | held 1, outside 2 "
-                       "| 15.0 cm (aimed 5.0 cm) | - |",
+                       "| 15.0 cm (aimed 5.0 cm; held 3.0 cm off) | - |",
                        "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | - | 7.2 cm | 85 deg | - | - | - |"]
     assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
     assert rows[1]["release_aim_off_cm"] == {"success": None, "target_not_placed": 5.0}
+    # the one let-go that recorded its TCP: 3 cm off it in the fingers (the other recorded none)
+    assert rows[1]["release_in_hand_cm"] == {"success": None, "target_not_placed": 3.0}
     assert rows[1]["release_over_cm"] == {"success": None, "target_not_placed": None}  # bins: no block below
     stack = [{"suite": "seen", "task": "stack", "who": "policy", "success": False, "sim_seconds": 30.0,
               "failure": "target_not_placed", "end": "timeout", "target_end": "released",
