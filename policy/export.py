@@ -78,7 +78,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
            goal_query: dict | None = None, goal_locator: str | Path | None = None,
            object_query: dict | None = None, phased: list[str] | None = None,
-           queries_from: str | Path | None = None, hand_offset: bool = False) -> dict:
+           queries_from: str | Path | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -101,9 +101,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     queries_from: a bundle whose goal and object queries (their tables as measured, their locators rebuilt from
     its graphs, policy.bundle_import.locator_from_bundle) this export keeps: a denoiser fine-tuned on frozen
     encoders changes neither, and their runs and data need not still exist. With goal_query or object_query, the
-    other one is kept and that one measured anew (e.g. a new goal locator beside the bundle's object locator).
-    hand_offset: the goal query (measured or kept) moves its release point by the held block's offset from the
-    TCP (policy/hand_offset.py); it must be asked from a look pose. A kept query keeps its own setting."""
+    other one is kept and that one measured anew (e.g. a new goal locator beside the bundle's object locator)."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -169,12 +167,6 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
             table, locator = kept[:2]
         object_table, object_locator = kept[2:]
         overrides.update(release_input=True, **({"grasp_input": True} if object_table else {}))
-    if hand_offset:
-        if table is None or table.get("look_m") is None:
-            raise ValueError("--hand-offset: the block to pick up is found from the goal query's look pose; give "
-                             "a goal query asked from one (--goal-locator RUN of `sudd views --look` views, or "
-                             "--queries-from a bundle whose goal query has look_m)")
-        table = {**table, "hand_offset": True}
     if object_query is not None:
         object_table, object_locator = object_query_table(model.cfg, normalizer, object_query, data_info)
         overrides.update(release_input=True, grasp_input=True)

@@ -76,10 +76,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episodes the object locator's error is measured on: data the policy did not train on")
     ex.add_argument("--object-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --object-locator` run it asks; exported as object_locator.onnx")
-    ex.add_argument("--hand-offset", action="store_true",
-                    help="move the goal query's release point by the held block's offset from the TCP "
-                         "(policy/hand_offset.py): needs a goal query asked from a look pose (--goal-locator of "
-                         "views from `sudd views --look`, or one kept with --queries-from)")
     ex.add_argument("--queries-from", type=Path, default=None, metavar="BUNDLE",
                     help="keep BUNDLE's goal and object queries: their tables as measured and their locators, "
                          "rebuilt from its graphs (for a run fine-tuned from BUNDLE on its frozen encoders; instead "
@@ -118,7 +114,6 @@ def _export(args) -> int:
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
                       pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
                       goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased),
-                      hand_offset=args.hand_offset,
                       queries_from=args.queries_from)
     if args.json:
         print(json.dumps(manifest, indent=2))

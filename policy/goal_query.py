@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policy.hand_offset import HandOffset
 from policy.instruction import goal_clause
 
 ARTICLES = ("the", "a", "an")
@@ -100,7 +99,6 @@ class GoalQuerySpec:
     ticks: int
     locator: bool = False  # asked of goal_locator.onnx (policy/goal_locator.py) instead of the obs encoder's head
     look_m: tuple[float, float, float] | None = None  # asked from the start pose moved this far (runtime/look.py)
-    hand_offset: bool = False  # the release point moved by the held block's offset from the TCP (policy/hand_offset.py)
 
 
 def query_table(manifest: dict, key: str, needs: str, point: str) -> dict | None:
@@ -145,13 +143,7 @@ def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
         if not locator:
             raise ValueError("manifest goal_query.look_m needs locator true: only a goal locator is taught the view "
                              "from the look pose")
-    hand = q.get("hand_offset", False)
-    if not isinstance(hand, bool):
-        raise ValueError(f"manifest goal_query.hand_offset {hand!r}: expected true or false")
-    if hand and look is None:
-        raise ValueError("manifest goal_query.hand_offset needs look_m: the block to pick up is found from the look "
-                         "pose, where the locator sees every block")
-    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks, locator, look, hand)
+    return GoalQuerySpec(tuple(families), tuple(float(v) for v in off), ticks, locator, look)
 
 
 class GoalQuery:
@@ -165,12 +157,6 @@ class GoalQuery:
         self._query = None if swapped is None else bundle.embed(swapped)
         self._points: list[np.ndarray] = []
         self.point: np.ndarray | None = None
-        # the block to pick up, asked as given at the look (policy/hand_offset.py)
-        held = swapped is not None and spec.look_m is not None and spec.hand_offset
-        self._own = bundle.embed(text) if held else None
-        self._object_points: list[np.ndarray] = []
-        self.object_point: np.ndarray | None = None
-        self.hand = HandOffset() if held else None
 
     @property
     def active(self) -> bool:
@@ -193,9 +179,6 @@ class GoalQuery:
         grasp = self.bundle.goal_point(images, proprio, self._query, stage)
         self._points.append(grasp + np.asarray(self.spec.offset_m))
         self.point = np.median(np.stack(self._points), axis=0)
-        if self._own is not None:
-            self._object_points.append(self.bundle.goal_point(images, proprio, self._own, stage))
-            self.object_point = np.median(np.stack(self._object_points), axis=0)
 
     def release(self, images: dict, proprio: np.ndarray, stage: int = 0) -> np.ndarray | None:
         """The (4,) release_point input for this inference (x, y, z base frame, flag 1), or None (the head's: no
@@ -204,10 +187,4 @@ class GoalQuery:
             return None
         if not self.look:
             self.ask(images, proprio, stage)
-        if self.point is None:
-            return None
-        point = self.point
-        if self.hand is not None:
-            self.hand.update(proprio, self.object_point)
-            point = self.hand.shift(point, proprio)
-        return np.append(point, 1.0).astype(np.float32)
+        return None if self.point is None else np.append(self.point, 1.0).astype(np.float32)

@@ -74,8 +74,6 @@ class EpisodeOutcome:
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
-    object_point: list[float] | None = None  # the block to pick up as the look found it (policy.hand_offset)
-    hand_offsets_cm: list[float] = field(default_factory=list)  # each held block's offset across the pads
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
     object_points: list | None = None  # the object query's object and drop, base frame [m] (policy.object_query)
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
@@ -203,9 +201,6 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:
             out.goal_point = [round(float(v), 4) for v in query.point]
-        if query.object_point is not None:
-            out.object_point = [round(float(v), 4) for v in query.object_point]
-            out.hand_offsets_cm = [round(100 * v, 2) for v in query.hand.taken]
         if look.offset is not None:
             out.look_seconds = round(look.seconds, 2)
             out.look_gave_up = look.gave_up

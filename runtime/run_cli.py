@@ -12,8 +12,6 @@ from pathlib import Path
 
 DEFAULT_BUNDLE = Path("policy/bundles/multitask")
 BUNDLE_ENV = "SUDD_POLICY"
-# info events printed beside warnings and errors: the skill run, where the goal was found, the look, the hand
-SKILL_EVENTS = ("policy_phase", "policy_goal_point", "policy_look", "policy_hand_offset")
 NODE_KINDS = ("robot", "camera", "policy")
 
 RUN_EPILOG = """\
@@ -205,7 +203,7 @@ def _run(args) -> int:
             if msg.kind == "task_success":
                 succeeded["v"] = True
             if msg.severity in ("warning", "error", "critical") or msg.kind.startswith(("command", "task")) \
-                    or msg.kind in SKILL_EVENTS:
+                    or msg.kind in ("policy_phase", "policy_goal_point", "policy_look"):  # the skill; the goal
                 print(f"[{msg.severity}] {msg.kind}: {msg.message}", file=sys.stderr)
 
         la.bus.subscribe(B.SAFETY_EVENT, on_event)

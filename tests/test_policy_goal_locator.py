@@ -235,14 +235,6 @@ def test_a_locator_taught_from_a_look_pose_is_measured_there_and_its_pose_shippe
     assert Bundle.load(tmp_path / "bundle").goal_query.look_m == look
     kept = export(root / "plain", tmp_path / "kept", cache_dir=CACHE, queries_from=tmp_path / "bundle")
     assert kept["goal_query"]["look_m"] == list(look)  # a later denoiser keeps asking from where it was taught
-    assert "hand_offset" not in kept["goal_query"]
-    held = export(root / "plain", tmp_path / "held", cache_dir=CACHE, queries_from=tmp_path / "bundle",
-                  hand_offset=True)  # the look also finds the block to pick up (policy/hand_offset.py)
-    assert held["goal_query"]["hand_offset"] and Bundle.load(tmp_path / "held").goal_query.hand_offset
-    again = export(root / "plain", tmp_path / "again", cache_dir=CACHE, queries_from=tmp_path / "held")
-    assert again["goal_query"]["hand_offset"]  # kept with the query
-    with pytest.raises(ValueError, match="--hand-offset: the block to pick up is found from the goal query's look"):
-        export(root / "plain", tmp_path / "no_look", cache_dir=CACHE, queries_from=root / "bundle", hand_offset=True)
     with pytest.raises(ValueError, match="2 poses"):
         pretrain([tmp_path / "views", root / "views"], root / "data", root / "plain", tmp_path / "mixed", 1, settings,
                  threads=1, progress=False, embedder=hash_embedder, init_from=root / "plain", goal_locator=True)

@@ -167,7 +167,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     hz = 1e9 / dt_ns
     rng = np.random.default_rng(cfg.seed)
     report: dict = {"chunks": 0, "ticks": 0, "stale_ticks": 0, "idle_ticks": 0, "refused": 0, "accepted": 0,
-                    "errors": 0, "hand_offsets": 0}
+                    "errors": 0}
     infer_ms: deque = deque(maxlen=2000)
     obs_to_pub_ms: deque = deque(maxlen=2000)
     frames = {c: _History(64) for c in bundle.cameras}
@@ -310,12 +310,6 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
                               "goes ({:.3f}, {:.3f}, {:.3f}) m (base frame; given in grasp cycle {})".format(
                                   *objects.points.ravel(), objects.stage))
-                    taken = len(q.hand.taken) if q.hand is not None else 0
-                    if taken > report["hand_offsets"]:  # a block came to rest in the fingers
-                        report["hand_offsets"] = taken
-                        event("policy_hand_offset", "info", "held {:.1f} cm off the TCP across the pads: the release "
-                              "point moved by it (policy/hand_offset.py)".format(100 * q.hand.taken[-1]),
-                              across_m=q.hand.taken[-1])
                     if q.settled and not settled:  # where the command's goal was found, once per command
                         report["goal_point"] = [round(float(v), 4) for v in q.point]
                         event("policy_goal_point", "info", "goal asked as '{}': at ({:.3f}, {:.3f}, {:.3f}) m in "
