@@ -36,7 +36,6 @@ import onnxruntime as ort
 
 from policy.action_frame import from_tcp, orthonormalize_rot6d, points_from_tcp
 from policy.config import AUX_TCP_SCALE
-from policy.consensus import check_draws, medoid
 from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORTED_VERSIONS, TEXT_DIM,  # noqa: F401
                                     BundleError, check_manifest, expected_graphs, need, goal_clause_of,
                                     grasp_input_of, instruction_dim, release_input_of)
@@ -167,9 +166,6 @@ class Bundle:
         # The sampling temperature: the initial noise is drawn from N(0, noise_scale^2 I). Below 1 the sampler
         # keeps to the denser middle of the learned action distribution (bundles before it: 1).
         self.noise_scale = float(m.get("sampling", {}).get("noise_scale", 1.0))
-        # Draws per chunk: with more than one, the sampler runs them as one batch and keeps the medoid
-        # (policy.consensus); bundles before it: 1. Settable after load (`sudd eval --draws`).
-        self.draws = check_draws(m.get("sampling", {}).get("draws", 1))
         self._cache: dict[str, np.ndarray] = {}
         self.goal_clause, self.instruction_dim = goal_clause_of(m), instruction_dim(m)
         self.release_input, self.goal_query = release_input_of(m), goal_query_spec(m)
@@ -293,21 +289,18 @@ class Bundle:
         grasp: (4,) likewise a grasp point (the object query, policy/object_query.py); only with grasp_input.
         """
         cond = self._encode(images, proprio, text_embedding, stage, release, grasp)[0]
-        shape = (self.pred_horizon, self.action_dim)
         if noise is None:
-            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal((self.draws, *shape))
-        x = np.asarray(noise, np.float32).reshape(-1, *shape)
-        if len(x) > 1:
-            cond = np.repeat(cond, len(x), axis=0)
+            shape = (self.pred_horizon, self.action_dim)
+            noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal(shape)
+        x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
         if trace is not None:
             trace.append(cond)
         den = self.sessions["denoiser"]
         for t, c, c_next in self._schedule:
-            out = den.run(None, {"noisy_actions": x, "timestep": np.full(len(x), t, np.int64), "cond": cond})[0]
+            out = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
             if trace is not None:
                 trace.append((x, t, out))
             x = self._step(x, out, c, c_next, self._clip).astype(np.float32)
-        x = x[medoid(x[:, self.execute])][None]
         a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
         p = np.asarray(proprio, np.float32)
         return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a

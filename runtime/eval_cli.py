@@ -65,9 +65,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episode budget = task.max_seconds x this (default 1; the collector keeps datagen's 2)")
     ev.add_argument("--replan-every", type=int, default=1, metavar="TICKS",
                     help="policy ticks between inferences (1: every tick, as the runtime's policy node)")
-    ev.add_argument("--draws", type=int, metavar="K",
-                    help="sampler draws per chunk, the medoid kept (policy/consensus.py; default: the bundle's "
-                         "sampling.draws, 1 where it records none)")
     ev.add_argument("--latency-ms", type=float, metavar="MS",
                     help="simulated inference lag per chunk, fixed (default: each inference's measured wall time, "
                          "which varies from run to run; fix it, e.g. 6, to compare bundles on exactly the same "
@@ -101,7 +98,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _eval(args) -> int:
     from policy.bundle import Bundle
-    from policy.consensus import check_draws
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from policy.phased import resolve_phased
@@ -118,16 +114,12 @@ def _eval(args) -> int:
     if args.realtime and (args.latency_ms is not None or args.filmstrips):
         raise ValueError("--realtime: the lag is the stack's own and there are no filmstrips of it; leave out "
                          "--latency-ms and --filmstrips (they are for the lockstep eval)")
-    if args.realtime and args.draws is not None:
-        raise ValueError("--realtime: the stack's policy node draws as the bundle's manifest says "
-                         "(sampling.draws); leave out --draws")
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     pace = resolve_pace(bundle.manifest, args.speed)
     phased = resolve_phased(bundle.phased, args.phases)
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     controller = with_bundle_levels(controller, bundle.manifest)  # recorded in summary.json as used
     bundle.check_replan_every(args.replan_every)
-    draws = check_draws(args.draws) if args.draws is not None else bundle.draws
     tasks = bundle.tasks if not args.task or "all" in args.task else [get_task(t).name for t in args.task]
     if not tasks:
         raise ValueError(f"{args.policy} records no tasks; name them with --task")
@@ -155,7 +147,7 @@ def _eval(args) -> int:
     todo = [j for j in jobs if key(j) not in have]
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
-                "latency_ms": args.latency_ms, "draws": draws, "pace": pace.table, "goal_query": not args.no_goal_query,
+                "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
@@ -291,9 +283,8 @@ def _init(settings: dict) -> None:
     from sim.config import load_config
 
     _WORKER.clear()
-    bundle = Bundle.load(settings["bundle"], intra_op_num_threads=1)
-    bundle.draws = settings.get("draws", bundle.draws)
-    _WORKER.update(settings=settings, bundle=bundle, controller=load_config(ControllerConfig, settings["controller"]))
+    _WORKER.update(settings=settings, bundle=Bundle.load(settings["bundle"], intra_op_num_threads=1),
+                   controller=load_config(ControllerConfig, settings["controller"]))
 
 
 def _job(job: dict) -> dict:

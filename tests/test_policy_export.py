@@ -115,30 +115,6 @@ def test_act_outputs(bundle):
         bundle.act(images, proprio[:1], e)
 
 
-def test_several_draws_run_as_one_batch_and_keep_the_medoid(bundle, monkeypatch):
-    import policy.bundle as pb
-
-    rng = np.random.default_rng(0)
-    images = {c: rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8) for c in bundle.cameras}
-    proprio = np.tile(np.array([0.3, -0.2, 0.25, 1, 0, 0, 0, -1, 0, 0, 0, 0, 0, 0, 0, 0], np.float32), (2, 1))
-    e = bundle.embed("do pick_place")
-    assert bundle.draws == 1  # a bundle that records none
-    z = np.random.default_rng(3).standard_normal((5, 16, 10)).astype(np.float32)
-    singles = [bundle.act(images, proprio, e, noise=zk) for zk in z]
-    got = bundle.act(images, proprio, e, noise=z)
-    assert min(float(np.abs(got - a).max()) for a in singles) < 1e-4  # one of the draws, as drawn alone
-    picked = []  # the one policy.consensus.medoid names, of the five normalized chunks' executed steps
-    monkeypatch.setattr(pb, "medoid", lambda x: picked.append(x.shape) or 3)
-    np.testing.assert_allclose(bundle.act(images, proprio, e, noise=z), singles[3], atol=1e-4)
-    assert picked == [(5, 8, 10)]
-    monkeypatch.undo()
-    bundle.draws = 5  # drawn from the rng: 5 noises in one call
-    try:
-        np.testing.assert_array_equal(bundle.act(images, proprio, e, rng=np.random.default_rng(3)), got)
-    finally:
-        bundle.draws = 1
-
-
 def test_task_similarity(bundle):
     best, cos = bundle.task_similarity("do stack")
     assert best == "do stack" and cos == pytest.approx(1.0, abs=1e-5)
@@ -193,7 +169,6 @@ def _bad_stats(p: Path):
     (lambda p: (p / "stats.npz").write_bytes(b"garbage"), "7 bytes, manifest says"),
     (lambda p: _edit(p, lambda m: m.pop("ddim")), "exactly one sampler schedule"),
     (lambda p: _edit(p, lambda m: m.__setitem__("sampling", {"noise_scale": 1.5})), "noise_scale 1.5 is outside"),
-    (lambda p: _edit(p, lambda m: m.__setitem__("sampling", {"draws": 0})), r"sampling draws 0: expected an integer"),
     (lambda p: _edit(p, lambda m: m.__setitem__("pace", {"stack": 0.0})), r"manifest pace.stack 0.0: expected"),
     (lambda p: _edit(p, lambda m: m.__setitem__("pace", {"drawer_open": 0.5})), "pace.drawer_open: unknown task"),
     (lambda p: _edit(p, lambda m: m.__setitem__("phased", ["stack"])), "manifest phased: 'stack' has no phases"),
