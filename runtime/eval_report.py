@@ -81,31 +81,33 @@ def summarise(records: list[dict]) -> list[dict]:
     return rows
 
 
+def _median_at_last_let_go(records: list[dict], measure) -> float | None:
+    """Median of `measure(release)` over the records that let go of the named object, each at its last let-go;
+    None where none did or `measure` gave None for every one (a field not recorded)."""
+    values = [measure(r["releases"][-1]) for r in records if r.get("releases")]
+    values = [v for v in values if v is not None]
+    return median(values) if values else None
+
+
 def _last_release_cm(records: list[dict], prefix: str = "") -> float | None:
-    """Median over the records that let go of the named object: how far (horizontally) from the goal bin's
-    centre it last left the fingers (prefix "aim_": where the followed chunk aimed the TCP then); None when
-    none did (or none recorded an aim)."""
-    last = [r["releases"][-1] for r in records if r.get("releases")]
-    off = [math.hypot(x[f"{prefix}dx_cm"], x[f"{prefix}dy_cm"]) for x in last if x.get(f"{prefix}dx_cm") is not None]
-    return median(off) if off else None
+    """How far (horizontally) from the goal bin's centre the object last left the fingers (prefix "aim_": where
+    the followed chunk aimed the TCP then)."""
+    return _median_at_last_let_go(records, lambda x: None if x.get(f"{prefix}dx_cm") is None
+                                  else math.hypot(x[f"{prefix}dx_cm"], x[f"{prefix}dy_cm"]))
 
 
 def _last_release_in_hand_cm(records: list[dict]) -> float | None:
-    """Median over the records that let go of the named object: how far (horizontally) it sat from the TCP in
-    the fingers as it last left them (where it left them minus where the TCP was). Why: a block let go off its
-    goal was either aimed off or held off centre, and only the first is the aim's fault; None when none
-    recorded the TCP."""
-    last = [r["releases"][-1] for r in records if r.get("releases")]
-    off = [math.hypot(x["dx_cm"] - x["tcp_dx_cm"], x["dy_cm"] - x["tcp_dy_cm"]) for x in last
-           if x.get("dx_cm") is not None and x.get("tcp_dx_cm") is not None]
-    return median(off) if off else None
+    """How far (horizontally) the object sat from the TCP in the fingers as it last left them (where it left them
+    minus where the TCP was). Why: a block let go off its goal was either aimed off or held off centre, and only
+    the first is the aim's fault."""
+    return _median_at_last_let_go(records, lambda x: None if x.get("dx_cm") is None or x.get("tcp_dx_cm") is None
+                                  else math.hypot(x["dx_cm"] - x["tcp_dx_cm"], x["dy_cm"] - x["tcp_dy_cm"]))
 
 
 def _last_release_over_cm(records: list[dict]) -> float | None:
-    """Median over the stack records that let go of the named block: how high over resting on the other it last
-    left the fingers; None when none recorded it (a task with a bin)."""
-    over = [r["releases"][-1]["over_cm"] for r in records if r.get("releases") and "over_cm" in r["releases"][-1]]
-    return median(over) if over else None
+    """Stack: how high over resting on the other block the named block last left the fingers (None for a task
+    with a bin, which records none)."""
+    return _median_at_last_let_go(records, lambda x: x.get("over_cm"))
 
 
 def markdown_table(rows: list[dict]) -> str:
