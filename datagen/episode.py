@@ -18,6 +18,7 @@ from datagen.plan import PRIMITIVES, describe
 from datagen.planner import make_planner
 from datagen.primitives import GRASP_SECONDS, HANDLE_GRASPS, PrimitiveFailed, Primitives
 from datagen.recorder import Recorder
+from datagen.release_offsets import ReleaseOffsets
 from datagen.sandbox import SandboxError, run_check
 from datagen.schema import IMAGE_SIZE, PERTURBATION, EpisodeData
 from datagen.trajectory import Motion, Segment, execute
@@ -117,6 +118,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     plan = planner.plan(ep.instruction, scene).validate(scene)
     prims = Primitives(world, ep.rngs.policy, variant=world.variant.name, handle_grasp=cfg.handle_grasp)
     recorder = Recorder(ep, image_size=tuple(cfg.image_size))
+    releases = ReleaseOffsets(recorder, world)
     state = StateView(world)
     budget = ep.task.max_seconds * cfg.time_limit_factor
     retries, attempts, completed = 0, [], 0
@@ -124,12 +126,12 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     perturb_rng = np.random.default_rng([int(seed), 0x5EED])
     dart_rng = np.random.default_rng([int(seed), 0xDA27])
 
-    def run(motion: Motion) -> None:
+    def run(motion: Motion, placing: str | None = None) -> None:
         offsets = None
         if cfg.path_noise_cm > 0 or cfg.grasp_noise_cm > 0:
             offsets = joint_offsets(motion, prims.kin, world.timestep, dart_rng, cfg.path_noise_cm / 100.0,
                                     grasp_sigma=cfg.grasp_noise_cm / 100.0)
-        execute(world, motion, observer=recorder, offsets=offsets)
+        execute(world, motion, observer=recorder if placing is None else releases.placing(placing), offsets=offsets)
 
     tries = [0] * len(plan.subtasks)
     index = 0
@@ -149,7 +151,7 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
                     motion = _missed(motion, perturb_rng)
                     reason = MISSED
                 executed = True
-                run(motion)
+                run(motion, sub.args["object"] if sub.primitive == "place" else None)
                 ok = run_check(sub.check, state, scene)
             except PrimitiveFailed as exc:
                 reason = f"primitive failed: {exc}"
@@ -199,6 +201,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
             meta["grasp_noise_cm"] = cfg.grasp_noise_cm
         if cfg.handle_grasp != "top":
             meta["handle_grasp"] = cfg.handle_grasp
+        if releases.records:  # where each placed object sat in the hand (datagen/release_offsets.py)
+            meta["release_offsets"] = releases.records
         return recorder.finish(meta)
     finally:
         recorder.close()

@@ -61,6 +61,11 @@ class Recorder:
         self._subtasks.append(PERTURBED if perturbed else self.subtask)
         self._times.append(w.time)
 
+    @property
+    def steps(self) -> int:
+        """Samples recorded so far."""
+        return len(self._proprio)
+
     def start(self) -> None:
         """The first sample, at the episode's start, before any step."""
         self.next_t = self.world.time + self.period

@@ -134,6 +134,12 @@ class PolicyConfig:
         "point moves the chunk 1.5-1.8 cm), and a goal query's point can be better than the head's grasp point. "
         "Measured (policy/EXPERIMENTS.md, \"Stack's placing\"): a fine-tune at 0.02 "
         "follows 0.7 of a move, at 0.1 0.5, and both stack 55 of 100")))
+    release_point: str = field(default="tcp", metadata=spec(choices=("tcp", "object"), doc=(
+        "what the recorded release point is: tcp (where the TCP let go) or object (that point moved by where the "
+        "placed object sat in the hand, the episode meta's release_offsets, horizontally: where the object "
+        "goes; episodes recorded without them keep the TCP's). With object, an episode whose grasp closed off "
+        "centre tells the denoiser the object's goal while its actions let go beside it: to land the object it "
+        "must read the hand from the wrist camera (datagen/release_offsets.py); needs aux_target_frame tcp")))
     image_cond_dropout: float = field(default=0.0, metadata=spec(0.0, 1.0, doc=(
         "share of training samples whose image features are hidden from the denoiser (zeroed in its cond; the "
         "aux head still reads them), so it must act on the aux points; 1 = never shown, at inference too: a "
@@ -205,6 +211,10 @@ class PolicyConfig:
             raise ConfigError(f"release_input needs aux_condition = true and aux_release_frame 'base' (got "
                               f"{self.aux_condition}, {self.aux_release_frame!r}): the point it takes replaces "
                               "the base-frame release point the head feeds the denoiser")
+        if self.release_point == "object" and (self.aux_target_weight <= 0 or self.aux_target_frame != "tcp"):
+            raise ConfigError(f"release_point 'object' needs aux_target_weight > 0 and aux_target_frame 'tcp' (got "
+                              f"{self.aux_target_weight}, {self.aux_target_frame!r}): it moves the release point of "
+                              "the gripper-frame aux target")
         if self.grasp_input and not self.release_input:
             raise ConfigError("grasp_input needs release_input = true: the object query gives the grasp and the "
                               "release point together, and the obs encoder returns the head's points with them")

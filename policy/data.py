@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.release_offsets import release_offset_at
 from datagen.schema import (episode_success, grasp_and_release_per_step, gripper_levels,  # noqa: F401 (policy.data API)
                             grasp_and_release_steps, perturbed_actions)
 from datagen.store import Dataset as EpisodeStore
@@ -129,6 +130,18 @@ def grasp_and_release(normalized: np.ndarray, steps: tuple[int, int]) -> torch.T
     return torch.from_numpy(np.concatenate([normalized[t_close, :3], normalized[t_open, :3]]).astype(np.float32))
 
 
+def object_release_points(points: np.ndarray, cycle: np.ndarray, offsets: list[dict] | None) -> np.ndarray:
+    """(T, 2, 3) grasp and release points per step, (T, 2) their steps, the episode's `release_offsets` -> the
+    points with each release moved horizontally by where the placed object sat in the hand at it (config
+    `release_point` "object"); a release with no recorded offset (a drawer's handle, older data) stays."""
+    out = np.array(points, np.float64, copy=True)
+    for step in np.unique(cycle[:, 1]):
+        offset = release_offset_at(offsets, int(step))
+        if offset is not None:
+            out[cycle[:, 1] == step, 1, :2] += offset[:2]
+    return out
+
+
 def relative_to_tcp(points: np.ndarray, proprio: np.ndarray) -> torch.Tensor:
     """(2, 3) base-frame points [m], one raw proprio row (TCP position, rot6d, ...) -> (6,) the points in
     the TCP frame over AUX_TCP_SCALE. The "tcp" auxiliary target: an offset the wrist camera shows the
@@ -204,6 +217,9 @@ class PolicyDataset(torch.utils.data.Dataset):
         self.release_step = [int(c[0, 1]) for c in self.cycle]
         if cfg.aux_target_frame == "tcp":
             self.aux_points = [a["action"][c, :3] for a, c in zip(low, self.cycle)]  # (T, 2, 3)
+            if cfg.release_point == "object":
+                self.aux_points = [object_release_points(p, c, self.store.meta(i).get("release_offsets"))
+                                   for p, c, i in zip(self.aux_points, self.cycle, self.episodes)]
         if cfg.aux_grasp_axis:  # per step: the yaw of the grasp it heads for; per episode: whether it has an axis
             self.grasp_yaw = [yaw_of(a["action"][c[:, 0], 3:9]) for a, c in zip(low, self.cycle)]
             self.has_axis = [episode_target_has_axis(self.store.meta(i)) for i in self.episodes]

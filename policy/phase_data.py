@@ -98,6 +98,11 @@ def cut_episode(ep: EpisodeData, phase: int) -> EpisodeData | str:
     meta = dict(ep.meta, task=skill, instruction=text, phase_of={
         "task": family, "seed": int(ep.meta["seed"]), "phase": phase, "start": a, "stop": b,
         "instruction": ep.meta["instruction"]})
+    # the releases inside the cut, counted from its start (datagen/release_offsets.py)
+    releases = [dict(r, step=int(r["step"]) - a) for r in ep.meta.get("release_offsets") or [] if a <= r["step"] < b]
+    meta.pop("release_offsets", None)
+    if releases:
+        meta["release_offsets"] = releases
     return EpisodeData(images={c: v[a:b] for c, v in ep.images.items()}, proprio=ep.proprio[a:b],
                        action=ep.action[a:b], subtask=ep.subtask[a:b], time=ep.time[a:b] - ep.time[a], meta=meta)
 

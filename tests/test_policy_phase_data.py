@@ -44,6 +44,17 @@ def test_the_closing_phase_begins_where_the_object_is_let_go():
     cut.validate()
 
 
+def test_a_cut_keeps_the_release_offsets_inside_it_counted_from_its_start():
+    ep = drawer_put_episode(3)
+    # the object let go at action step 42 (datagen/release_offsets.py); a handle let go earlier has no entry
+    ep.meta["release_offsets"] = [{"step": 42, "object": "obj0", "offset_m": [0.01, -0.02, -0.01]}]
+    middle = cut_episode(ep, 1)  # steps 17..59
+    assert middle.meta["release_offsets"] == [{"step": 25, "object": "obj0", "offset_m": [0.01, -0.02, -0.01]}]
+    assert middle.action[25, GRIPPER_COLUMN] == 0.0 < middle.action[24, GRIPPER_COLUMN]
+    closing = cut_episode(ep, 2)  # from step 43: no release of a placed object in it
+    assert "release_offsets" not in closing.meta
+
+
 def test_a_cycle_counted_far_from_the_subtask_is_not_cut():
     # "close the drawer" labelled 21 steps after the count says the phase began: a re-grasp miscounted
     late = [(0, 10), (1, 10), (2, 44), (3, 1)]
