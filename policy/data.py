@@ -55,6 +55,10 @@ from policy.normalize import Normalizer
 from policy.stage import GRIPPER_COLUMN, commands_in_effect, cycles_per_step, with_stage
 
 
+# the collector holds a grasp this many steps after closing (datagen.primitives.GRASP_SECONDS at CONTROL_HZ)
+HOLD_SETTLE_STEPS = 6
+
+
 def available_memory() -> float:
     """Bytes of physical memory free now (Linux; 2 GB where the OS does not say)."""
     try:
@@ -229,9 +233,13 @@ class PolicyDataset(torch.utils.data.Dataset):
         # no window whose chunk holds a step of an injected failure (datagen.schema.PERTURBED): the data shows
         # how to recover from one, never how to make one
         clean = [np.concatenate([[0], np.cumsum(perturbed_actions(a["subtask"]))]) for a in low]
+        # an episode whose grasps closed off the plan on purpose may train only from its first hold on
+        # (cfg.grasp_noise_windows): the newest observation at least the grasp's hold past its close
+        first = [self.grasp_step[k] + HOLD_SETTLE_STEPS if cfg.grasp_noise_windows == "after_grasp"
+                 and self.store.meta(i).get("grasp_noise_cm") else -To for k, i in enumerate(self.episodes)]
         self.index = [(k, s) for k, T in enumerate(self.lengths)
                       for s in range(-(To - 1), max(-(To - 1), T - Tp + Ta - 1) + 1)
-                      if clean[k][min(T, s + Tp)] == clean[k][max(0, s)]]
+                      if clean[k][min(T, s + Tp)] == clean[k][max(0, s)] and s + To - 1 >= first[k]]
         # with read_images=False a sample names its frames (rows of policy.feature_cache's table) instead
         self.read_images = read_images
         self.frame_offset = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)

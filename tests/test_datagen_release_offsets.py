@@ -99,3 +99,34 @@ def test_the_policys_base_frame_release_target_is_where_the_object_went(tmp_path
     for index in (0, 10, len(tcp) - 1):
         shift = (obj.aux_target(index) - tcp.aux_target(index)).numpy() * AUX_TCP_SCALE
         np.testing.assert_allclose(shift, [0, 0, 0, 0.02, -0.01, 0], atol=1e-6)
+
+
+def test_grasp_noise_episodes_can_train_from_their_settled_hold_on_only(tmp_path):
+    from datagen.store import ShardWriter
+    from datagen.workers import synthetic_episode
+    from policy.data import HOLD_SETTLE_STEPS, PolicyDataset
+    from policy.testing import TINY, hash_embedder
+
+    def episode(seed, noisy):
+        ep = synthetic_episode("stack", seed, steps=40)
+        grip = np.zeros(40, np.float32)
+        grip[12:30] = 1.0  # closes at 12, lets go at 30
+        ep.action[:, -1] = grip
+        ep.meta.update(success=True, label={"value": True, "source": "synthetic"})
+        if noisy:
+            ep.meta["grasp_noise_cm"] = 2.0
+        return ep
+
+    with ShardWriter(tmp_path / "d", "w0") as w:
+        w.append(episode(0, noisy=True))
+        w.append(episode(1, noisy=False))
+    every = PolicyDataset(tmp_path / "d", load_policy_config(TINY), train=False, embedder=hash_embedder)
+    held = PolicyDataset(tmp_path / "d", load_policy_config(TINY, {"grasp_noise_windows": "after_grasp"}),
+                         train=False, embedder=hash_embedder)
+    To = every.cfg.obs_horizon
+    noisy = next(k for k, i in enumerate(held.episodes) if held.store.meta(i).get("grasp_noise_cm"))
+    newest = [s + To - 1 for k, s in held.index if k == noisy]
+    assert min(newest) == 12 + HOLD_SETTLE_STEPS
+    assert newest == [s + To - 1 for k, s in every.index if k == noisy and s + To - 1 >= 12 + HOLD_SETTLE_STEPS]
+    # the episode without grasp noise keeps every window
+    assert [w for w in held.index if w[0] != noisy] == [w for w in every.index if w[0] != noisy]
