@@ -130,3 +130,11 @@ def test_grasp_noise_episodes_can_train_from_their_settled_hold_on_only(tmp_path
     assert newest == [s + To - 1 for k, s in every.index if k == noisy and s + To - 1 >= 12 + HOLD_SETTLE_STEPS]
     # the episode without grasp noise keeps every window
     assert [w for w in held.index if w[0] != noisy] == [w for w in every.index if w[0] != noisy]
+
+
+def test_the_hold_the_windows_wait_for_is_the_collectors():
+    from datagen.primitives import GRASP_SECONDS
+    from datagen.schema import CONTROL_HZ
+    from policy.data import HOLD_SETTLE_STEPS
+
+    assert HOLD_SETTLE_STEPS == round(GRASP_SECONDS * CONTROL_HZ)
