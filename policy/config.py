@@ -143,9 +143,9 @@ class PolicyConfig:
     grasp_noise_windows: str = field(default="all", metadata=spec(choices=("all", "after_grasp"), doc=(
         "which windows of an episode recorded with grasp noise (meta grasp_noise_cm: its grasps closed off the "
         "plan on purpose) train: all, or only those from the first grasp's settled hold on (the off-centre hold "
-        "and the place after it, never the approach that closed off centre). Why: with release_point object "
-        "such episodes teach landing a block held off centre, and their closes off the plan taught the policy "
-        "to close off centre too (s48: grasps held 0.8 cm off the TCP, step 33's 0.6; policy/EXPERIMENTS.md)")))
+        "and the place after it, never the approach that closed off centre), so that with release_point object "
+        "such episodes teach landing a block held off centre and not closing off centre. Measured (s49, "
+        "policy/EXPERIMENTS.md): the fine-tune's grasps were as sloppy without those closes as with them")))
     image_cond_dropout: float = field(default=0.0, metadata=spec(0.0, 1.0, doc=(
         "share of training samples whose image features are hidden from the denoiser (zeroed in its cond; the "
         "aux head still reads them), so it must act on the aux points; 1 = never shown, at inference too: a "
