@@ -41,6 +41,8 @@ from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORT
                                     grasp_input_of, instruction_dim, release_input_of)
 from policy.goal_query import goal_query_spec
 from policy.object_query import object_query_spec
+from policy.turn_query import COLUMNS as TURN_COLUMNS
+from policy.turn_query import turn_query_spec
 from policy.instruction import embed_instructions
 from policy.onnx_opsets import onnx_opsets
 from policy.pace import bundle_pace
@@ -170,6 +172,7 @@ class Bundle:
         self.goal_clause, self.instruction_dim = goal_clause_of(m), instruction_dim(m)
         self.release_input, self.goal_query = release_input_of(m), goal_query_spec(m)
         self.grasp_input, self.object_query = grasp_input_of(m), object_query_spec(m)
+        self.turn_query = turn_query_spec(m)
         self._refs = np.zeros((0, self.instruction_dim), np.float32)
 
     def check_replan_every(self, n: int) -> None:
@@ -333,6 +336,14 @@ class Bundle:
         grasp = points_from_tcp(points[None, :3] * AUX_TCP_SCALE, p[-1, :9])[0]
         return np.stack([grasp, points[3:6] * AUX_TCP_SCALE]).astype(np.float32)
 
+    def turn_label(self, images: dict[str, np.ndarray], proprio: np.ndarray,
+                   text_embedding: np.ndarray) -> np.ndarray:
+        """(2,) the turn locator's (cos, sin) of the wrist turn to grasp the command's object times the footprint's
+        symmetry (policy/turn_query.py reads it); only for a bundle with a turn query."""
+        need(self.turn_query is not None, f"{self.root} has no turn locator (exported without --turn-locator)")
+        feeds, _ = self._checked_feeds(images, proprio, text_embedding)
+        return self.sessions["turn_locator"].run(None, feeds)[0][0, TURN_COLUMNS].astype(np.float32)
+
     def _checked_feeds(self, images, proprio, text_embedding) -> tuple[dict, np.ndarray]:
         """The graphs' image and text feeds after checking them, and the checked proprio as float32."""
         To, (H, W) = self.obs_horizon, self.image_size
@@ -379,5 +390,6 @@ class Bundle:
                 "phased": list(self.phased),
                 "goal_query": list(self.goal_query.families) if self.goal_query else [],
                 "object_query": list(self.object_query.families) if self.object_query else [],
+                "turn_query": list(self.turn_query.families) if self.turn_query else [],
                 "data_hash": m.get("data", {}).get("content_hash"), "params": m.get("params"),
                 "bytes": {k: v["bytes"] for k, v in m["files"].items()}}

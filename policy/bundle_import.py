@@ -158,7 +158,7 @@ def model_from_bundle(bundle_dir: str | Path) -> tuple[DiffusionPolicy, Normaliz
 
 
 def locator_from_bundle(bundle_dir: str | Path, graph: str) -> tuple[DiffusionPolicy, dict]:
-    """The torch locator behind a bundle's `graph` (goal_locator or object_locator, policy/goal_locator.py) and
+    """The torch locator behind a bundle's `graph` (goal_, object_ or turn_locator, policy/goal_locator.py) and
     the record of the run it came from (the manifest's query table's `locator_from`), rebuilt as
     `model_from_bundle` rebuilds the policy: its encoders and head read back from the graph, the rest of the
     model (the denoiser, which a locator never runs) left fresh; refused unless the rebuild reproduces the graph
@@ -171,7 +171,8 @@ def locator_from_bundle(bundle_dir: str | Path, graph: str) -> tuple[DiffusionPo
     bundle_dir = Path(bundle_dir)
     b = Bundle.load(bundle_dir, warmup=False)
     manifest = json.loads((bundle_dir / "manifest.json").read_text())
-    table = manifest.get({"goal_locator": "goal_query", "object_locator": "object_query"}.get(graph, ""))
+    table = manifest.get({"goal_locator": "goal_query", "object_locator": "object_query",
+                          "turn_locator": "turn_query"}.get(graph, ""))
     if graph not in manifest.get("graphs", {}) or not table:
         raise ValueError(f"bundle import: {bundle_dir} has no {graph} graph (its graphs: "
                          f"{', '.join(manifest.get('graphs', {}))})")

@@ -7,6 +7,7 @@ from __future__ import annotations
 from policy.action_frame import FRAMES
 from policy.goal_query import goal_query_spec
 from policy.object_query import object_query_spec
+from policy.turn_query import turn_query_spec
 from policy.pace import bundle_pace
 from policy.phased import bundle_phased
 
@@ -57,6 +58,8 @@ def expected_graphs(m: dict) -> dict:
                if release_input_of(m) and (m.get("goal_query") or {}).get("locator") is True else {})
     if grasp_input_of(m) and m.get("object_query") is not None:  # its locator is the only way it is asked
         locator["object_locator"] = {"inputs": images + [text], "outputs": release[1]}
+    if release_input_of(m) and m.get("turn_query") is not None:  # likewise (policy/turn_query.py)
+        locator["turn_locator"] = {"inputs": images + [text], "outputs": release[1]}
     return {
         **locator,
         "obs_encoder": {"inputs": images + [io("proprio", ["B", To, Dp], "float32"), text] + release[0],
@@ -132,6 +135,7 @@ def check_manifest(m: dict) -> None:
         bundle_phased(m)
         goal_query_spec(m)
         object_query_spec(m)
+        turn_query_spec(m)
     except ValueError as exc:
         raise BundleError(str(exc)) from None
     te = m.get("text_encoder", {})

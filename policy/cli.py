@@ -100,10 +100,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "train an object locator instead: the same copy taught where drawer_put's object is and where in the drawer "
         "it goes, from the start (views of `sudd views --task drawer_put --stage object --at-home`), validated on "
         "--data's drawer_put episodes; try it with `sudd oracle-eval BUNDLE --task drawer_put --phases --points-from RUN`"))
+    pre.add_argument("--turn-locator", action="store_true", help=(
+        "train a turn locator instead (policy/turn_query.py): the same copy taught how far the wrist must turn to "
+        "grasp the command's object square to its faces, on views along the way to the grasp (`sudd views --task "
+        "stack`), validated on --data's recorded frames before each first close; export it with `sudd export "
+        "BUNDLE --queries-from BUNDLE --turn-locator RUN`"))
     pre.add_argument("--from-locator", action="store_true", help=(
-        "with --goal-locator (or --object-locator) and --init-from BUNDLE: start from the bundle's own locator, "
-        "rebuilt from its graph, instead of its policy's encoders and head (more views, or the whole frame with "
-        "--set crop_size=[128,128], from where the shipped locator left off)"))
+        "with --goal-locator (or --object-locator, --turn-locator) and --init-from BUNDLE: start from the bundle's "
+        "own locator of that question, rebuilt from its graph, instead of its policy's encoders and head (more "
+        "views, or the whole frame with --set crop_size=[128,128], from where the shipped locator left off)"))
     pre.add_argument("--json", action="store_true", help="print the summary as JSON")
     pre.set_defaults(func=_pretrain)
 
@@ -241,29 +246,17 @@ def _train(args) -> int:
 def _pretrain(args) -> int:
     from policy.pretrain import pretrain
 
-    if args.goal_locator and args.object_locator:
-        raise ValueError("--goal-locator and --object-locator each train one locator: give one of them")
+    asked = [q for q, flag in (("goal", args.goal_locator), ("object", args.object_locator),
+                                ("turn", args.turn_locator)) if flag]
+    if len(asked) > 1:
+        raise ValueError(f"--{'-locator, --'.join(asked)}-locator each train one locator: give one of them")
     summary = pretrain(args.views, args.data, args.config, args.out, args.steps, parse_overrides(args.set),
                        init_from=args.init_from, head_only=args.head_only, episode_share=args.episode_share,
-                       episode_tasks=tuple(args.episode_task), goal_locator=args.goal_locator or args.object_locator,
-                       locator_question="object" if args.object_locator else "goal", from_locator=args.from_locator)
+                       episode_tasks=tuple(args.episode_task), goal_locator=bool(asked),
+                       locator_question=asked[0] if asked else "goal", from_locator=args.from_locator)
     val = summary["validation"] or {}
-    if args.object_locator:
-        b = summary["goal_query_before"]
-        print(json.dumps(summary, indent=2) if args.json else
-              f"object locator {summary['run_dir']} ({summary['views']} home views), on {args.data}'s drawer_put "
-              f"episodes: the object {b['object_grasp_cm_median']:.2f} -> {val['object_grasp_cm_median']:.2f} cm off, "
-              f"the drop {b['object_release_cm_median']:.2f} -> {val['object_release_cm_median']:.2f} cm (medians)")
-        return 0
-    if args.goal_locator:
-        b = summary["goal_query_before"]
-        print(json.dumps(summary, indent=2) if args.json else
-              f"goal locator {summary['run_dir']} ({summary['views']} views from "
-              f"{'the look pose ' + str(summary['look_m']) if summary.get('look_m') else 'home'}): the goal query's "
-              f"release point "
-              f"on {args.data} {b['goal_cm_median']:.2f} -> {val['goal_cm_median']:.2f} cm off (median; p75 "
-              f"{b['goal_cm_p75']:.2f} -> {val['goal_cm_p75']:.2f}); next: sudd export {args.init_from} --out BUNDLE "
-              f"--goal-query FAMILY --goal-query-data DATA --goal-locator {summary['run_dir']}")
+    if asked:
+        print(json.dumps(summary, indent=2) if args.json else _locator_line(asked[0], summary, args))
         return 0
     print(json.dumps(summary, indent=2) if args.json else
           f"run {summary['run_dir']}: {summary['views']} views of {summary['scenes']} scenes, loss "
@@ -274,6 +267,25 @@ def _pretrain(args) -> int:
           + f"next: sudd train {args.data} --out RUN --init-from {summary['run_dir']}")
     return 0
 
+
+def _locator_line(question: str, s: dict, args) -> str:
+    """What a locator's pretraining run learnt, in one line, and the export that ships it."""
+    b, val = s["goal_query_before"], s["validation"] or {}
+    if question == "turn":
+        return (f"turn locator {s['run_dir']} ({s['views']} views on the way to the grasp), on {args.data}'s frames "
+                f"before the first close: the wrist turn {b['turn_deg_median']:.1f} -> {val['turn_deg_median']:.1f} "
+                f"deg off, at the start {b['turn_deg_start_median']:.1f} -> {val['turn_deg_start_median']:.1f} "
+                f"(medians; not turning: {val['no_turn_deg_median']:.1f}); next: sudd export {args.init_from} --out "
+                f"BUNDLE --queries-from {args.init_from} --turn-locator {s['run_dir']}")
+    if question == "object":
+        return (f"object locator {s['run_dir']} ({s['views']} home views), on {args.data}'s drawer_put episodes: the "
+                f"object {b['object_grasp_cm_median']:.2f} -> {val['object_grasp_cm_median']:.2f} cm off, the drop "
+                f"{b['object_release_cm_median']:.2f} -> {val['object_release_cm_median']:.2f} cm (medians)")
+    where = "the look pose " + str(s["look_m"]) if s.get("look_m") else "home"
+    return (f"goal locator {s['run_dir']} ({s['views']} views from {where}): the goal query's release point on "
+            f"{args.data} {b['goal_cm_median']:.2f} -> {val['goal_cm_median']:.2f} cm off (median; p75 "
+            f"{b['goal_cm_p75']:.2f} -> {val['goal_cm_p75']:.2f}); next: sudd export {args.init_from} --out BUNDLE "
+            f"--goal-query FAMILY --goal-query-data DATA --goal-locator {s['run_dir']}")
 
 def _validate(args) -> int:
     from policy.validate import validate_model

@@ -53,13 +53,14 @@ from policy.bundle import sha256_file
 from policy.config import TEXT_DIM
 from policy.export_graphs import OPSET, _onnx_export, _rounded, _write_locator, graph_specs, write_policy_graphs  # noqa: F401
 from policy.goal_locator import GRAPH as LOCATOR_GRAPH
-from policy.goal_locator import OBJECT_GRAPH, load_locator, object_query_table
+from policy.goal_locator import OBJECT_GRAPH, TURN_GRAPH, load_locator, object_query_table
 from policy.goal_locator import graph_spec as locator_spec
 from policy.model import DiffusionPolicy, count_params, film_dim
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
 from policy.phased import check_phased
 from policy.object_query import with_skill_families
+from policy.turn_query_measure import turn_query_table
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
 from policy.warm_start import read_record
@@ -78,7 +79,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
            goal_query: dict | None = None, goal_locator: str | Path | None = None,
            object_query: dict | None = None, phased: list[str] | None = None,
-           queries_from: str | Path | None = None) -> dict:
+           queries_from: str | Path | None = None, turn_locator: str | Path | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -101,7 +102,10 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     queries_from: a bundle whose goal and object queries (their tables as measured, their locators rebuilt from
     its graphs, policy.bundle_import.locator_from_bundle) this export keeps: a denoiser fine-tuned on frozen
     encoders changes neither, and their runs and data need not still exist. With goal_query or object_query, the
-    other one is kept and that one measured anew (e.g. a new goal locator beside the bundle's object locator)."""
+    other one is kept and that one measured anew (e.g. a new goal locator beside the bundle's object locator).
+    turn_locator: a `sudd pretrain --turn-locator` run (policy/turn_query.py), exported as turn_locator.onnx; its
+    table records the run's own check (on the run's --data). A bundle's turn query is kept by `queries_from` like
+    the others."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -156,7 +160,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         if locator is not None:
             table["locator_from"] = {"run": str(goal_locator), **record}
         overrides["release_input"] = True
-    object_table, object_locator = None, None
+    object_table, object_locator, turn_table, turn_model = None, None, None, None
     if queries_from is not None:
         if goal_query is not None and object_query is not None:
             raise ValueError("--queries-from keeps the bundle's queries this export does not measure anew; with both "
@@ -165,28 +169,32 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         kept = _kept_queries(queries_from, model.cfg, data_info, anew)
         if goal_query is None:
             table, locator = kept[:2]
-        object_table, object_locator = kept[2:]
+        object_table, object_locator, turn_table, turn_model = kept[2:]
         overrides.update(release_input=True, **({"grasp_input": True} if object_table else {}))
     if object_query is not None:
         object_table, object_locator = object_query_table(model.cfg, normalizer, object_query, data_info)
         overrides.update(release_input=True, grasp_input=True)
+    if turn_locator is not None:
+        turn_table, turn_model = turn_query_table(turn_locator, model.cfg, data_info.get("tasks", []))
     if object_table is not None:  # kept or measured, it serves the skill families of the ones it serves
         object_table = with_skill_families(object_table, data_info.get("tasks", []))
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,
-                        text_encoder_from, pace, table, locator, object_table, object_locator, phased)
+                        text_encoder_from, pace, table, locator, object_table, object_locator, phased,
+                        turn_table, turn_model)
 
 
 def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict, anew: set = frozenset()):
-    """(goal table, goal locator, object table, object locator) of a bundle, for `queries_from`; the queries in
+    """(goal table, goal locator, object table, object locator, turn table, turn locator) of a bundle, for
+    `queries_from`; the queries in
     `anew` ("goal_query", "object_query") are measured by this export instead, so they come back None."""
     from policy.bundle_import import locator_from_bundle
     from policy.goal_locator import check_compatible
 
     source = json.loads((Path(bundle_dir) / "manifest.json").read_text())
     out: list = []
-    for key, graph in (("goal_query", LOCATOR_GRAPH), ("object_query", OBJECT_GRAPH)):
+    for key, graph in (("goal_query", LOCATOR_GRAPH), ("object_query", OBJECT_GRAPH), ("turn_query", TURN_GRAPH)):
         table = source.get(key)
         if not table or key in anew:
             out += [None, None]
@@ -201,10 +209,9 @@ def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict, anew: set
         locator, record = locator_from_bundle(bundle_dir, graph)
         check_compatible(policy_cfg, locator.cfg)
         out += [{**table, "kept_from": record}, locator]
-    if out[0] is None and out[2] is None:
-        raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no "
-                         f"{' or '.join(k.replace('_', ' ') for k in ('goal_query', 'object_query') if k not in anew)}"
-                         " to keep")
+    if all(t is None for t in out[::2]):
+        kinds = [k.replace("_", " ") for k in ("goal_query", "object_query", "turn_query") if k not in anew]
+        raise ValueError(f"--queries-from {bundle_dir}: the bundle asks no {' or '.join(kinds)} to keep")
     return tuple(out)
 
 
@@ -240,11 +247,13 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
                  text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
                  goal_query: dict | None = None, locator: DiffusionPolicy | None = None,
                  object_query: dict | None = None, object_locator: DiffusionPolicy | None = None,
-                 phased: list[str] | None = None) -> dict:
+                 phased: list[str] | None = None, turn_query: dict | None = None,
+                 turn_locator: DiffusionPolicy | None = None) -> dict:
     """Write, verify and publish the bundle of `model` (atomically: a failed export leaves no bundle).
     goal_query: the manifest's table (policy.goal_query_measure), for a model with release_input; locator: the
     goal locator it was measured with (policy/goal_locator.py), written as goal_locator.onnx; object_query and
-    object_locator: the same for the object query (policy/object_query.py; object_locator.onnx, grasp_input).
+    object_locator: the same for the object query (policy/object_query.py; object_locator.onnx, grasp_input);
+    turn_query and turn_locator for the turn query (policy/turn_query.py; turn_locator.onnx).
 
     fp16_weights: store the policy graphs' weights as float16; `model` itself is left unrounded."""
     import tokenizers
@@ -262,7 +271,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
         round_weights_(rounded)
         weights = {"dtype": "float16", "rounding": rounding_cost(model, rounded, normalizer)}
         model = rounded
-        locator, object_locator = _rounded(locator), _rounded(object_locator)
+        locator, object_locator, turn_locator = _rounded(locator), _rounded(object_locator), _rounded(turn_locator)
     cfg = model.cfg
     out = Path(out_bundle_dir)
     if out.exists() and any(out.iterdir()) and not (out / "manifest.json").is_file():
@@ -272,7 +281,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
     try:
         specs = graph_specs(cfg)
         weights.update(write_policy_graphs(model, tmp, opset, fp16_weights))
-        for graph, m in ((LOCATOR_GRAPH, locator), (OBJECT_GRAPH, object_locator)):
+        for graph, m in ((LOCATOR_GRAPH, locator), (OBJECT_GRAPH, object_locator), (TURN_GRAPH, turn_locator)):
             if m is not None:
                 specs[graph] = locator_spec(cfg, graph)
                 weights[graph] = _write_locator(m, tmp, specs[graph], opset, fp16_weights)
@@ -305,6 +314,7 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "pace": pace, **({"phased": list(phased)} if phased else {}),
             **({"goal_query": goal_query} if goal_query else {}),
             **({"object_query": object_query} if object_query else {}),
+            **({"turn_query": turn_query} if turn_query else {}),
             "data": {k: v for k, v in data_info.items() if k not in ("tasks", "instructions")},
             "training": training or {}, "config": cfg.to_dict(),
             "params": {"obs_encoder": count_params(model.obs_encoder) + count_params(model.unet.film_cond)
@@ -315,7 +325,8 @@ def export_model(model: DiffusionPolicy, normalizer: Normalizer, out_bundle_dir:
             "files": {str(p.relative_to(tmp)): {"bytes": p.stat().st_size, "sha256": sha256_file(p)} for p in files},
         }
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
-        manifest["parity"] = check_parity(model, normalizer, tmp, locator=locator, object_locator=object_locator)
+        manifest["parity"] = check_parity(model, normalizer, tmp, locator=locator, object_locator=object_locator,
+                                          turn_locator=turn_locator)
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2))
         if out.exists():
             shutil.rmtree(out)

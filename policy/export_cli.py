@@ -33,6 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                "      --phased drawer_put        # ... and drawer_put's object, drawer_put run as its phases\n"
                "  sudd export runs/ft --out bundles/ft --queries-from policy/bundles/multitask \\\n"
                "      --pace drawer_close=0.5,drawer_open=0.5 --phased drawer_put   # a fine-tuned denoiser\n"
+               "  sudd export policy/bundles/multitask --out bundles/mt5 --queries-from policy/bundles/multitask \\\n"
+               "      --turn-locator runs/turnloc    # ... and the wrist turn asked at the goal query's look\n"
                "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
                "  sudd export --restore-text-encoder policy/bundles/demo")
     ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out), or a bundle to export again")
@@ -76,8 +78,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episodes the object locator's error is measured on: data the policy did not train on")
     ex.add_argument("--object-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --object-locator` run it asks; exported as object_locator.onnx")
+    ex.add_argument("--turn-locator", type=Path, default=None, metavar="RUN",
+                    help="the `sudd pretrain --turn-locator` run the turn query asks at the goal query's look (how "
+                         "far the wrist turns to grasp square to the object, policy/turn_query.py); exported as "
+                         "turn_locator.onnx, its check on the run's --data recorded")
     ex.add_argument("--queries-from", type=Path, default=None, metavar="BUNDLE",
-                    help="keep BUNDLE's goal and object queries: their tables as measured and their locators, "
+                    help="keep BUNDLE's goal, object and turn queries: their tables as measured and their locators, "
                          "rebuilt from its graphs (for a run fine-tuned from BUNDLE on its frozen encoders; instead "
                          "of the --goal-query and --object-query options, whose runs and data may be gone); with "
                          "--goal-query (or --object-query) the other query is kept and that one measured anew")
@@ -114,7 +120,7 @@ def _export(args) -> int:
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
                       pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
                       goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased),
-                      queries_from=args.queries_from)
+                      queries_from=args.queries_from, turn_locator=args.turn_locator)
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:

@@ -28,6 +28,8 @@ import numpy as np
 import torch
 
 from policy.goal_query import role_swap
+from policy.turn_query import COLUMNS as TURN_COLUMNS  # the head's grasp-axis slot (aux_grasp_axis)
+from policy.turn_query import GRAPH as TURN_GRAPH
 
 GRAPH = "goal_locator"
 FILE = "goal_locator.onnx"
@@ -35,8 +37,11 @@ OBJECT_GRAPH = "object_locator"  # the object question's locator (policy/object_
 GOAL_COLUMNS = slice(0, 3)  # the head's grasp slot: the one point the goal query reads
 # The question a locator is taught, and the head's columns its loss is on: "goal", the goal query's (the object a
 # command puts something on, asked as the one to grasp: the grasp slot); "object", a long task's later grasp asked
-# at the start (drawer_put: where the object is and where in the drawer it goes: the grasp and release slots).
-QUESTIONS = {"goal": GOAL_COLUMNS, "object": slice(0, 6)}
+# at the start (drawer_put: where the object is and where in the drawer it goes: the grasp and release slots);
+# "turn", how far the wrist must turn to grasp the command's object, asked on the way there (the axis slot,
+# policy.grasp_axis.turn_label).
+QUESTIONS = {"goal": GOAL_COLUMNS, "object": slice(0, 6), "turn": TURN_COLUMNS}
+GRAPHS = {"goal": GRAPH, "object": OBJECT_GRAPH, "turn": TURN_GRAPH}
 
 
 def check_question(question: str) -> slice:
@@ -66,9 +71,20 @@ def locator_rows(v: dict, question: str = "goal") -> dict:
     """Rendered views (datagen.views.load) relabelled for the locator's `question` (QUESTIONS): each scene's first
     view (the arm at home, where the question is asked). "goal": of the commands that name two objects, with the
     role-swapped command and the release point as the grasp label. "object": a later stage's views rendered at
-    home, the command and the labels as they are. A ValueError when no view is of the kind."""
+    home, the command and the labels as they are. "turn": every view on the way to the first grasp (not only the
+    first), as it is, of objects with one footprint period (the runtime reads the answers for that period). A
+    ValueError when no view is of the kind."""
     check_question(question)
     n = len(v["instruction"])
+    if question == "turn":  # every view on the way to the first grasp: the question is asked all along it
+        keep = np.flatnonzero(np.array([not str(x) for x in v["stage"]], bool)
+                              & ~np.asarray(v.get("at_home", np.zeros(n, bool)), bool))
+        periods = np.unique(np.round(np.asarray(v.get("footprint_period", np.zeros(n)))[keep], 4))
+        if not len(keep) or len(periods) != 1 or periods[0] <= 0:
+            raise ValueError(f"the turn locator learns one footprint's turn: views of first grasps whose objects all "
+                             f"have one footprint period (got periods {np.degrees(periods).round(1).tolist()} deg over "
+                             f"{len(keep)} views); render views of one such family (sudd views --task stack)")
+        return {k: (val[keep] if isinstance(val, np.ndarray) and len(val) == n else val) for k, val in v.items()}
     if question == "object":
         keep = np.flatnonzero(_first_views(v, home_stage=True))
         if not len(keep):

@@ -70,3 +70,20 @@ def angle_error_deg(pred: np.ndarray, want: np.ndarray) -> np.ndarray:
     """(N, 2) predicted and true labels -> (N,) how far the predicted grasp yaw is off, in degrees (0-90)."""
     a = np.arctan2(pred[..., 1], pred[..., 0]) - np.arctan2(want[..., 1], want[..., 0])
     return np.degrees(np.abs((a + np.pi) % (2 * np.pi) - np.pi) / 2.0)
+
+
+def turn_label(grasp_yaw, tcp_yaw, period) -> np.ndarray:
+    """(..., 2) float32: (cos k d, sin k d), k = 2 pi / period, d = grasp_yaw - tcp_yaw: the wrist turn to the
+    nearest equally good grasp, without the ambiguity of the footprint's symmetry. Unlike `axis_label`, a square
+    block (period a quarter turn) has one: k = 4. A bar (half a turn) gets axis_label's own; a round footprint
+    (period 0) (0, 0). Taught to the turn locator (policy/turn_query.py)."""
+    p = np.asarray(period, np.float64)
+    k = np.where(p > 0, 2.0 * np.pi / np.where(p > 0, p, 1.0), 0.0)
+    d = k * (np.asarray(grasp_yaw, np.float64) - np.asarray(tcp_yaw, np.float64))
+    return (np.stack([np.cos(d), np.sin(d)], axis=-1) * (p > 0)[..., None]).astype(np.float32)
+
+
+def turn_of(label, period: float) -> float:
+    """The wrist turn [rad] in (-period/2, period/2] a `turn_label` (cos, sin) says, for a footprint of `period`."""
+    c, s = (float(v) for v in np.asarray(label, np.float64).reshape(2))
+    return float(np.arctan2(s, c)) * period / (2.0 * np.pi)

@@ -75,9 +75,9 @@ def rounding_cost(fp32: DiffusionPolicy, rounded: DiffusionPolicy, normalizer: N
 @torch.no_grad()
 def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str | Path, trials: int = 3,
                  seed: int = 0, locator: DiffusionPolicy | None = None,
-                 object_locator: DiffusionPolicy | None = None) -> dict:
+                 object_locator: DiffusionPolicy | None = None, turn_locator: DiffusionPolicy | None = None) -> dict:
     """torch vs the bundle (see the module docstring), and a goal locator's graph vs `locator` where given (the
-    object locator's vs `object_locator`). Raises ExportError over tolerance."""
+    object locator's vs `object_locator`, the turn locator's vs `turn_locator`). Raises ExportError over tolerance."""
     from policy.bundle import Bundle
 
     b = Bundle.load(bundle_dir, warmup=False)
@@ -94,12 +94,13 @@ def check_parity(model: DiffusionPolicy, normalizer: Normalizer, bundle_dir: str
         worst["chunk_max_abs_err"] = max(worst["chunk_max_abs_err"], float(np.abs(ref_chunk - chunk).max()))
     if model.cfg.release_input:
         worst.update(_release_parity(model, normalizer, b, trials, seed))
-    for graph, m in (("goal_locator", locator), ("object_locator", object_locator)):
+    for graph, m in (("goal_locator", locator), ("object_locator", object_locator), ("turn_locator", turn_locator)):
         if m is not None:
             worst[f"{graph}_max_abs_err"] = _locator_parity(m, normalizer, b, trials, seed, graph)
     worst.update(trials=trials, step_tol=STEP_TOL, chunk_tol=CHUNK_TOL)
     over = [k for k in ("cond_max_abs_err", "step_max_abs_err", "release_cond_max_abs_err", "aux_points_max_abs_err",
-                        "grasp_cond_max_abs_err", "goal_locator_max_abs_err", "object_locator_max_abs_err")
+                        "grasp_cond_max_abs_err", "goal_locator_max_abs_err", "object_locator_max_abs_err",
+                        "turn_locator_max_abs_err")
             if worst.get(k, 0.0) > STEP_TOL]
     if over or worst["chunk_max_abs_err"] > CHUNK_TOL:
         raise ExportError(f"exported graphs disagree with torch: {worst}")

@@ -48,8 +48,8 @@ from datagen.views import measure_offsets
 from datagen.views import tasks as view_tasks
 from policy.config import PolicyConfig, load_policy_config
 from policy.data import PolicyDataset, aux_point_target, color_jitter, crop, finish_images, jitter_factors
-from policy.goal_locator import check_question, locator_look, locator_rows
-from policy.grasp_axis import axis_label, period_has_axis, yaw_of
+from policy.goal_locator import GRAPHS, check_question, locator_look, locator_rows
+from policy.grasp_axis import axis_label, period_has_axis, turn_label, yaw_of
 from policy.instruction import embed_instructions
 from policy.model import DiffusionPolicy, count_params
 from policy.plot import plot_metrics
@@ -81,7 +81,9 @@ class Views:
             if "grasp_yaw" not in v:
                 raise ValueError(f"{views_dir}: aux_grasp_axis needs views that keep the grasp yaw, and (some of) "
                                  "these shards were rendered before it was kept; render them again with `sudd views`")
-            axis = axis_label(v["grasp_yaw"], yaw_of(v["proprio"][:, 3:9]), period_has_axis(v["footprint_period"]))
+            tcp_yaw = yaw_of(v["proprio"][:, 3:9])
+            axis = (turn_label(v["grasp_yaw"], tcp_yaw, v["footprint_period"]) if goal_locator and question == "turn"
+                    else axis_label(v["grasp_yaw"], tcp_yaw, period_has_axis(v["footprint_period"])))
             self.aux = torch.cat([self.aux, torch.from_numpy(axis)], dim=1)
         texts = sorted(set(v["instruction"].tolist()))
         table = torch.from_numpy(embed_instructions(embedder, texts, cfg.text_goal))
@@ -89,6 +91,8 @@ class Views:
         self.text = table[[row[t] for t in v["instruction"].tolist()]]
         self.scenes = int(len(np.unique(v["seed"])))
         self.look = locator_look(v) if goal_locator else None
+        # the footprint period the turn question's answers are read for (locator_rows keeps views of one)
+        self.period = float(v["footprint_period"][0]) if goal_locator and question == "turn" else None
 
     def __len__(self) -> int:
         return len(self.aux)
@@ -188,6 +192,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
         raise ValueError(f"episode_tasks {list(episode_tasks)} chooses the recorded frames of episode_share, which is 0: "
                          "give a share too (sudd pretrain --episode-share 0.25 --episode-task ...)")
     cols = check_question(locator_question) if goal_locator else slice(None)
+    if goal_locator and locator_question == "turn" and not cfg.aux_grasp_axis:
+        raise ValueError("the turn locator answers in the head's grasp-axis slot: it needs a policy with "
+                         "aux_grasp_axis true (the bundle's config)")
     if goal_locator and (init_from is None or episode_share):
         raise ValueError("a goal locator is a copy of a policy's encoders and head taught the goal query on home views: "
                          "give --init-from the bundle it goes with, and no --episode-share (recorded frames carry "
@@ -233,9 +240,7 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     model.set_proprio_stats(fit.normalizer)
     warm = None
     if from_locator:
-        from policy.goal_locator import GRAPH, OBJECT_GRAPH
-
-        warm = warm_start.load_locator_into(model, init_from, GRAPH if locator_question == "goal" else OBJECT_GRAPH)
+        warm = warm_start.load_locator_into(model, init_from, GRAPHS[locator_question])
     elif init_from is not None:
         warm = warm_start.load_into(model, init_from)
     ema = EMA(model, cfg.ema_power, cfg.ema_max_decay)
@@ -257,7 +262,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                                       "episode_share": episode_share, "episode_tasks": list(episode_tasks),
                                       "goal_locator": goal_locator,
                                       **({"locator_question": locator_question} if goal_locator else {}),
-                                      **({"look_m": list(views.look)} if views.look else {})})
+                                      **({"look_m": list(views.look)} if views.look else {}),
+                                      **({"families": views.families, "data": str(data_dir),
+                                          "period_deg": round(float(np.degrees(views.period)), 3)}
+                                         if views.period else {})})
     (run_dir / "dataset.json").write_text(json.dumps(info, indent=2))
     if warm is not None:
         warm_start.write_record(run_dir, warm)
@@ -266,7 +274,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     rng = np.random.default_rng(cfg.seed)
     goal = None
     if goal_locator:
-        goal = _locator_check(locator_question, fit.normalizer, data_dir, views.families, embedder, views.look)
+        goal = _locator_check(locator_question, fit.normalizer, data_dir, views.families, embedder, views.look,
+                              views.period)
         with open(metrics, "a") as f:
             f.write(json.dumps({"step": 0, **goal(model)}) + "\n")
     model.train()
@@ -296,7 +305,8 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
                 f.write(json.dumps({"step": step, **goal(ema.model)}) + "\n")
     checkpoint = save_checkpoint(run_dir, steps, steps, model, ema, opt, sched, cfg)
     rows = [json.loads(x) for x in metrics.read_text().splitlines() if x.strip()]
-    checks = [r for r in rows if "val_loss" in r or "goal_cm_median" in r or "object_grasp_cm_median" in r]
+    checks = [r for r in rows if "val_loss" in r or "goal_cm_median" in r or "object_grasp_cm_median" in r
+              or "turn_deg_median" in r]
     losses = [r["loss"] for r in rows if "loss" in r]
     summary = {"run_dir": str(run_dir), "step": steps, "init_from": None if warm is None else warm["source"],
                "views": len(views), "scenes": views.scenes, "look_m": list(views.look) if views.look else None,
@@ -308,10 +318,19 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     return summary
 
 
-def _locator_check(question: str, normalizer, data_dir, families: list[str], embedder, look=None):
+def _locator_check(question: str, normalizer, data_dir, families: list[str], embedder, look=None, period=None):
     """model -> the validation row of a locator of `question`: the goal query's error on --data's episodes
-    (goal_cm_*), or the object locator's grasp and release errors on its drawer_put episodes (object_*_cm_*)."""
+    (goal_cm_*), the object locator's grasp and release errors on its drawer_put episodes (object_*_cm_*), or the
+    turn locator's error on its family's recorded frames before the first close (turn_deg_*)."""
     from policy.goal_query_measure import measure, measure_object
+
+    if question == "turn":
+        from policy.turn_query_measure import measure_turn
+
+        family = families[0].partition("/")[0]
+        return lambda m: {k: v for k, v in measure_turn(m.eval(), data_dir, family, period, embedder,
+                                                        episodes=60).items()
+                          if k.startswith(("turn", "no_turn", "sure"))}
 
     if question == "goal":
         def check(m) -> dict:

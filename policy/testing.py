@@ -118,17 +118,30 @@ def linked_copy(bundle_dir: str | Path, dst: str | Path) -> Path:
 
 class StillBundle:
     """A bundle stand-in for run_policy_episode with a goal query (`look`: asked from that look pose,
-    runtime/look.py): every chunk holds the arm where it is, hand open; it keeps what it was asked and given:
-    the questions' instructions and TCP positions, the TCP at each chunk and each chunk's release input."""
+    runtime/look.py; with `turn_deg` a turn query too, answering the turn from the wrist's yaw now to the first
+    asked yaw plus `turn_deg`, for a square footprint, a sure answer of length `turn_norm`): every chunk
+    holds the arm where it is, hand open; it keeps what it was asked and given: the questions' instructions and
+    TCP positions, the TCP at each chunk (and its rot6d) and each chunk's release input."""
 
     cameras, obs_horizon, image_size, execute = ("scene", "wrist"), 1, (128, 128), slice(0, 8)
     manifest = {"horizons": {"control_hz": 10.0}}
 
-    def __init__(self, families=("pick_place",), look=None):
+    def __init__(self, families=("pick_place",), look=None, turn_deg=None, turn_norm=1.0):
         from policy.goal_query import GoalQuerySpec
+        from policy.turn_query import TurnQuerySpec
 
         self.goal_query = GoalQuerySpec(tuple(families), (0.0, 0.0, 0.05), 3, look is not None, look)
-        self.asked, self.asked_at, self.acted_at, self.releases = [], [], [], []
+        self.turn_query = None if turn_deg is None else TurnQuerySpec(tuple(families), np.pi / 2)
+        self.turn_deg, self.turn_norm, self._turn_from = turn_deg, turn_norm, None
+        self.asked, self.asked_at, self.acted_at, self.releases, self.acted_rot = [], [], [], [], []
+        self.turns_asked_at = []
+
+    def turn_label(self, images, proprio, emb):
+        self.turns_asked_at.append(np.array(proprio[-1, :3]))
+        wrist = float(np.arctan2(proprio[-1, 4], proprio[-1, 3]))
+        self._turn_from = wrist if self._turn_from is None else self._turn_from
+        a = 4.0 * (self._turn_from + np.radians(self.turn_deg) - wrist)
+        return self.turn_norm * np.array([np.cos(a), np.sin(a)], np.float32)
 
     def embed(self, text):
         return np.frombuffer(text.encode().ljust(384)[:384], np.uint8).astype(np.float32)
@@ -140,6 +153,7 @@ class StillBundle:
 
     def act(self, images, proprio, emb, rng=None, stage=0, **given):
         self.acted_at.append(np.array(proprio[-1, :3]))
+        self.acted_rot.append(np.array(proprio[-1, 3:9]))
         self.releases.append(given.get("release"))
         chunk = np.repeat(np.asarray(proprio, np.float32)[-1:, :10], 16, axis=0)
         chunk[:, 9] = 0.0

@@ -75,6 +75,7 @@ class EpisodeOutcome:
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
+    turn_deg: float | None = None  # the turn query's last target yaw from the start's (policy.turn_query)
     object_points: list | None = None  # the object query's object and drop, base frame [m] (policy.object_query)
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
     phase_starts: list[float] = field(default_factory=list)  # with phases: the sim time [s] each one began
@@ -103,11 +104,13 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused)."""
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
+    from policy.turn_query import TurnQuery
 
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
     from runtime.look import Look
+    from runtime.wrist_turn import hold_yaw
     from runtime.phases import Sequencer
     from sim.twins.rig import SimRig
 
@@ -122,6 +125,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     query = GoalQuery(bundle, text, task, enabled=goal_query)
     objects = ObjectQuery(bundle, text, task, enabled=goal_query)
     look = Look(query)
+    turn = TurnQuery(bundle, text, task, enabled=goal_query)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -180,6 +184,11 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                         proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                     if actions is None:  # the policy's turn (not a phase's retreat to the start)
                         actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
+                        if turn.active and stage == 0:  # until the first grasp cycle ends (runtime.wrist_turn)
+                            if rig.world.gripper_command() < 0.5:  # asked until the fingers first close
+                                turn.ask(images, proprio)
+                            if turn.target is not None:
+                                actions = hold_yaw(actions, proprio[-1], turn.target, dt_ns * 1e-9)
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s
@@ -204,6 +213,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         if look.offset is not None:
             out.look_seconds = round(look.seconds, 2)
             out.look_gave_up = look.gave_up
+        if turn.turn is not None:
+            out.turn_deg = round(math.degrees(turn.turn), 1)
         if objects.points is not None:
             out.object_points = np.round(objects.points, 4).tolist()
         if not out.success:

@@ -219,7 +219,7 @@ def test_a_new_denoiser_keeps_a_bundles_queries_and_their_locators(object_bundle
     assert kept == src["object_query"] and record["bundle"] == str(root / "bundle")
     assert record["locator_question"] == "object" and record["rebuilt_max_abs_err"] <= 1e-6
     assert m["grasp_input"] is True and m["files"]["object_locator.onnx"] == src["files"]["object_locator.onnx"]
-    with pytest.raises(ValueError, match="asks no goal query to keep"):  # the object query measured anew
+    with pytest.raises(ValueError, match="asks no goal query or turn query to keep"):  # the object query anew
         export(root / "run", root / "x", cache_dir=CACHE, queries_from=root / "bundle",
                object_query={"families": ["drawer_put"], "data": root / "data", "locator": root / "locator"})
     with pytest.raises(ValueError, match="asks no goal query or object query"):

@@ -146,9 +146,11 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
+    from policy.turn_query import TurnQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.look import Look
+    from runtime.wrist_turn import hold_yaw
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
@@ -201,7 +203,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         bus.subscribe(B.LANGUAGE_COMMAND, lambda msg: commands.append((msg.command_id, msg.text)))
         if cfg.command:
             commands.append(("initial", cfg.command))
-        current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None, "look": None}
+        current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None, "look": None,
+                         "turn": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -227,6 +230,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
                     current["look"] = Look(current["query"])
+                    current["turn"] = TurnQuery(bundle, text, task, enabled=cfg.goal_query)
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -238,7 +242,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                       f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
-                    current.update(text=None, emb=None, query=None, objects=None, phases=None, look=None)
+                    current.update(text=None, emb=None, query=None, objects=None, phases=None, look=None,
+                                   turn=None)
                     why = ("the bundle records no trained instructions" if best is None else
                            f"closest trained instruction '{best}' has cosine {cos:.2f} < "
                            f"{cfg.similarity_threshold:.2f}")
@@ -305,6 +310,16 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                         if a is None:  # the policy's turn (not a phase's retreat to the start)
                             a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
+                            turn = current["turn"]
+                            if turn.active and stage == 0:  # until the first grasp cycle ends (runtime.wrist_turn)
+                                sure = turn.sure
+                                if request < 0.5:  # asked until the fingers first close
+                                    turn.ask(imgs, prop)
+                                if turn.sure and not sure:  # the first sure answer, once per command
+                                    event("policy_turn", "info", f"the wrist turns {np.degrees(turn.turn):+.1f} deg "
+                                          "to grasp square to the object's faces", turn_deg=float(np.degrees(turn.turn)))
+                                if turn.target is not None:
+                                    a = hold_yaw(a, prop[-1], turn.target, dt_ns * 1e-9)
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "

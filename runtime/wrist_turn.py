@@ -1,0 +1,49 @@
+"""The wrist turn the turn query asks for (policy/turn_query.py), held on the policy's actions until its first
+grasp cycle ends.
+
+Why: the policy does not turn the wrist for a block's yaw (its features do not say it), so it closes a uniform
+0-45 degrees off the block's faces, and off-face closes are where its stacks fail. The turn locator says the turn
+on the way to the grasp; this sets the yaw of every action of the chunk to the target yaw, reached at `rate` from
+the wrist's yaw now, about the vertical, so the policy's position, tilt and gripper are left as they were. After
+the first grasp cycle (a let-go, or a close on nothing) the policy's own yaw is sent again: its training episodes
+turn the wrist back only through what the collector did, and a retry's object may lie elsewhere.
+
+numpy only: the runtime's policy node and `sudd eval` both use it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from policy.action_frame import rot6d_of, rotations
+
+DEFAULT_RATE = 0.6  # rad/s: the look's and the retreats' turning speed (runtime.retreat.Retreat.turn)
+
+
+def yaw(R: np.ndarray) -> float:
+    """The yaw [rad] of a rotation's x axis (the fingers' closing axis) about the vertical."""
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def _about_z(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _wrapped(angle: float) -> float:
+    return float((angle + np.pi) % (2 * np.pi) - np.pi)
+
+
+def hold_yaw(actions: np.ndarray, pose: np.ndarray, target: float, dt: float,
+             rate: float = DEFAULT_RATE) -> np.ndarray:
+    """(n, 10) actions (position, rot6d, gripper) one every `dt` s, each rot6d turned about the vertical so its
+    yaw is `target` [rad], approached from `pose`'s (9,: the TCP now) at no more than `rate` rad/s."""
+    out = np.array(actions, np.float32, copy=True)
+    now = yaw(rotations(np.asarray(pose[3:9], np.float64)))
+    gap = _wrapped(target - now)
+    for k in range(len(out)):
+        limit = rate * (k + 1) * dt
+        want = now + float(np.clip(gap, -limit, limit))
+        R = rotations(np.asarray(out[k, 3:9], np.float64))
+        out[k, 3:9] = rot6d_of(_about_z(_wrapped(want - yaw(R))) @ R)
+    return out
