@@ -177,7 +177,7 @@ def test_a_locator_of_the_whole_frame_is_exported_measured_and_kept_at_its_own_c
     kept = export(root / "plain", tmp_path / "kept", cache_dir=CACHE, queries_from=tmp_path / "bundle")
     assert kept["goal_query"]["locator_from"]["crop_size"] == whole
     assert (tmp_path / "kept" / "goal_locator.onnx").read_bytes() == (tmp_path / "bundle" / "goal_locator.onnx").read_bytes()
-    with pytest.raises(ValueError, match="asks no object query to keep"):  # the goal query measured anew
+    with pytest.raises(ValueError, match="asks no object query or turn query to keep"):  # the goal query measured anew
         export(root / "plain", tmp_path / "x", cache_dir=CACHE, queries_from=tmp_path / "bundle",
                goal_locator=tmp_path / "whole", goal_query={"families": ["stack"], "data": data, "ticks": 2})
 
