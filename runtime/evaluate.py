@@ -110,7 +110,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
     from runtime.look import Look
-    from runtime.wrist_turn import hold_yaw
+    from runtime.wrist_turn import steer
     from runtime.phases import Sequencer
     from sim.twins.rig import SimRig
 
@@ -184,11 +184,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                         proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                     if actions is None:  # the policy's turn (not a phase's retreat to the start)
                         actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
-                        if turn.active and stage == 0:  # until the first grasp cycle ends (runtime.wrist_turn)
-                            if rig.world.gripper_command() < 0.5:  # asked until the fingers first close
-                                turn.ask(images, proprio)
-                            if turn.target is not None:
-                                actions = hold_yaw(actions, proprio[-1], turn.target, dt_ns * 1e-9)
+                        actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
+                                        dt_ns * 1e-9)
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from policy.action_frame import rot6d_of, rotations
+from sim.rotations import rotvec_to_matrix
 
 DEFAULT_RATE = 0.6  # rad/s: the look's and the retreats' turning speed (runtime.retreat.Retreat.turn)
 
@@ -23,11 +24,6 @@ DEFAULT_RATE = 0.6  # rad/s: the look's and the retreats' turning speed (runtime
 def yaw(R: np.ndarray) -> float:
     """The yaw [rad] of a rotation's x axis (the fingers' closing axis) about the vertical."""
     return float(np.arctan2(R[1, 0], R[0, 0]))
-
-
-def _about_z(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _wrapped(angle: float) -> float:
@@ -45,5 +41,17 @@ def hold_yaw(actions: np.ndarray, pose: np.ndarray, target: float, dt: float,
         limit = rate * (k + 1) * dt
         want = now + float(np.clip(gap, -limit, limit))
         R = rotations(np.asarray(out[k, 3:9], np.float64))
-        out[k, 3:9] = rot6d_of(_about_z(_wrapped(want - yaw(R))) @ R)
+        out[k, 3:9] = rot6d_of(rotvec_to_matrix([0.0, 0.0, _wrapped(want - yaw(R))]) @ R)
     return out
+
+
+def steer(turn, actions: np.ndarray, images: dict, proprio: np.ndarray, stage: int, closing: bool,
+          dt: float) -> np.ndarray:
+    """The policy's chunk with the turn query's yaw held (module doc), as `sudd eval` and the policy node both play
+    it: `turn` (policy.turn_query.TurnQuery) asked about these frames while the fingers have not yet closed
+    (`closing` False), its target held while no grasp cycle has ended (`stage` 0); else the chunk as it was."""
+    if not turn.active or stage != 0:
+        return actions
+    if not closing:
+        turn.ask(images, proprio)
+    return actions if turn.target is None else hold_yaw(actions, proprio[-1], turn.target, dt)

@@ -150,7 +150,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.look import Look
-    from runtime.wrist_turn import hold_yaw
+    from runtime.wrist_turn import steer
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
@@ -310,16 +310,11 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                         if a is None:  # the policy's turn (not a phase's retreat to the start)
                             a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
-                            turn = current["turn"]
-                            if turn.active and stage == 0:  # until the first grasp cycle ends (runtime.wrist_turn)
-                                sure = turn.sure
-                                if request < 0.5:  # asked until the fingers first close
-                                    turn.ask(imgs, prop)
-                                if turn.sure and not sure:  # the first sure answer, once per command
-                                    event("policy_turn", "info", f"the wrist turns {np.degrees(turn.turn):+.1f} deg "
-                                          "to grasp square to the object's faces", turn_deg=float(np.degrees(turn.turn)))
-                                if turn.target is not None:
-                                    a = hold_yaw(a, prop[-1], turn.target, dt_ns * 1e-9)
+                            turn, sure = current["turn"], current["turn"].sure
+                            a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
+                            if turn.sure and not sure:  # the first sure answer, once per command
+                                event("policy_turn", "info", f"the wrist turns {np.degrees(turn.turn):+.1f} deg to "
+                                      "grasp square to the object's faces", turn_deg=float(np.degrees(turn.turn)))
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
