@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import signal
 import sys
 import time
@@ -199,8 +200,11 @@ def _eval(args) -> int:
     if phased:
         how = "--phases" if args.phases else "the bundle's manifest"
         query += f". Run as their phases (runtime/phases.py; {how}): {', '.join(phased)}"
-    (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\nPolicy pace (fraction of the recorded "
-                                         f"speed): {pace.describe()}. {query}\n\n{table}\n")
+    v = summary["versions"]
+    measured = (f"Measured on {v['cpu']}, numpy {v['numpy']}, mujoco {v['mujoco']}, onnxruntime {v['onnxruntime']}: "
+                "the same seeds give the same episodes only there.")
+    (args.out / "results.md").write_text(f"# sudd eval: {args.policy}\n\n{measured}\n\nPolicy pace (fraction of "
+                                         f"the recorded speed): {pace.describe()}. {query}\n\n{table}\n")
     png = plot(rows, args.out / "success.png")
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -213,18 +217,38 @@ def _eval(args) -> int:
 
 
 def library_versions() -> dict[str, str]:
-    """The versions an eval's figures depend on: the same seeds and bundle give the same episodes only on the
-    same physics and inference (a fresh install of newer mujoco or onnxruntime moved drawer_put's episodes)."""
+    """What an eval's figures depend on: the same seeds and bundle give the same episodes only on the same physics
+    and inference (a fresh install of newer mujoco or onnxruntime moved drawer_put's episodes), and on the same
+    CPU's vector instructions (a new machine with the same packages moved 77 of step 33's 120 stack episodes:
+    policy/EXPERIMENTS.md, "The same bundle on another machine")."""
     import platform
     from importlib.metadata import PackageNotFoundError, version
 
-    out = {"python": platform.python_version()}
+    out = {"python": platform.python_version(), "cpu": cpu_description()}
     for name in ("numpy", "mujoco", "onnxruntime"):
         try:
             out[name] = version(name)
         except PackageNotFoundError:
             out[name] = "missing"
     return out
+
+
+def cpu_description(cpuinfo: str | None = None) -> str:
+    """The CPU's model and the widest vector instruction set it offers, e.g. "AMD EPYC (avx2)": the kernels
+    numpy, MuJoCo and onnxruntime pick, and so the last bits of their sums, follow it."""
+    import platform
+
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    model = re.search(r"^model name\s*:\s*(.+)$", cpuinfo, re.M)
+    flags = re.search(r"^(?:flags|Features)\s*:\s*(.+)$", cpuinfo, re.M)
+    name = model.group(1).strip() if model else (platform.processor() or platform.machine() or "unknown")
+    have = set(flags.group(1).split()) if flags else set()
+    widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "asimd") if f in have), None)
+    return f"{name} ({widest})" if widest else name
 
 
 def read_results(path: Path) -> list[dict]:

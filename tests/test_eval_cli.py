@@ -24,7 +24,11 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
 
     assert summary["versions"]["mujoco"] == mujoco.__version__  # what the figures were measured on
     assert summary["versions"]["onnxruntime"] == onnxruntime.__version__
+    from runtime.eval_cli import cpu_description
+
+    assert summary["versions"]["cpu"] == cpu_description()
     md = (tmp_path / "results.md").read_text()
+    assert f"Measured on {cpu_description()}, numpy" in md
     assert "| seen | pick_place | 0/1" in md and "| paraphrase | pick_place | 0/1" in md
     assert "Why the policy failed" in md
     assert (tmp_path / "success.png").stat().st_size > 1000
@@ -204,3 +208,14 @@ def test_eval_cli_realtime_runs_the_policy_through_the_live_stack(untrained_bund
     capsys.readouterr()
     assert main(args + ["--latency-ms", "6"]) == 2  # the live stack's lag is its own
     assert "--latency-ms" in capsys.readouterr().err
+
+
+def test_cpu_description_names_the_model_and_the_widest_vector_set():
+    from runtime.eval_cli import cpu_description
+
+    info = "processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse4_2 avx avx2 fma\n"
+    assert cpu_description(info) == "AMD EPYC 7B13 (avx2)"
+    wide = info.replace("avx2 fma", "avx2 avx512f avx512bw")
+    assert cpu_description(wide) == "AMD EPYC 7B13 (avx512f)"
+    arm = "processor\t: 0\nFeatures\t: fp asimd evtstrm\n"
+    assert cpu_description(arm).endswith("(asimd)")
