@@ -116,6 +116,46 @@ def linked_copy(bundle_dir: str | Path, dst: str | Path) -> Path:
     return dst
 
 
+def constant_turn_locator(bundle_dir: str | Path, dst: str | Path, family: str, turn_deg: float,
+                          period_deg: float = 90.0) -> Path:
+    """A linked copy of a bundle with a turn query for `family` whose turn locator answers every frame with the
+    same sure turn, `turn_deg` from the wrist's yaw (its graph built by hand: a constant tiled over the batch), to
+    test what the runtime does with an answer it can predict."""
+    import json
+
+    import onnx
+    from onnx import TensorProto, helper
+
+    from policy.grasp_axis import turn_label
+    from policy.bundle import sha256_file
+
+    out = linked_copy(bundle_dir, dst)
+    m = json.loads((out / "manifest.json").read_text())
+    feeds = [i for i in m["graphs"]["obs_encoder"]["inputs"] if i["name"].startswith("image_")
+             or i["name"] == "text_embedding"]
+    row = np.zeros((1, 8), np.float32)
+    row[0, 6:8] = turn_label(np.radians(turn_deg), 0.0, np.radians(period_deg))
+    kinds = {"uint8": TensorProto.UINT8, "float32": TensorProto.FLOAT}
+    nodes = [helper.make_node("Shape", ["text_embedding"], ["shape"], start=0, end=1),
+             helper.make_node("Concat", ["shape", "one"], ["reps"], axis=0),
+             helper.make_node("Tile", ["answer", "reps"], ["aux_points"])]
+    graph = helper.make_graph(
+        nodes, "constant_turn", [helper.make_tensor_value_info(i["name"], kinds[i["dtype"]], i["shape"])
+                                 for i in feeds],
+        [helper.make_tensor_value_info("aux_points", TensorProto.FLOAT, ["B", 8])],
+        [onnx.numpy_helper.from_array(row, "answer"), onnx.numpy_helper.from_array(np.array([1], np.int64), "one")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", m["opset"])])
+    (out / "turn_locator.onnx").unlink(missing_ok=True)  # a link to the source bundle's own: never write through it
+    onnx.save(model, out / "turn_locator.onnx")
+    m["graphs"]["turn_locator"] = {"file": "turn_locator.onnx", "inputs": feeds,
+                                   "outputs": [{"name": "aux_points", "shape": ["B", 8], "dtype": "float32"}]}
+    m["files"]["turn_locator.onnx"] = {"bytes": (out / "turn_locator.onnx").stat().st_size,
+                                       "sha256": sha256_file(out / "turn_locator.onnx")}
+    m["turn_query"] = {"families": [family], "period_deg": period_deg}
+    (out / "manifest.json").write_text(json.dumps(m, indent=2))
+    return out
+
+
 class StillBundle:
     """A bundle stand-in for run_policy_episode with a goal query (`look`: asked from that look pose,
     runtime/look.py; with `turn_deg` a turn query too, answering the turn from the wrist's yaw now to the first

@@ -15,7 +15,8 @@ How: a turn locator (policy/goal_locator.py, the "turn" question: a copy of the 
 views along the way to the grasp) is asked the command at every inference until the gripper first closes. An
 answer is a (cos, sin) pair whose length says how sure it is (a regression onto unit vectors shrinks where the
 frames do not tell: the object small, or out of view); one at least `min_norm` long sets the target yaw, the
-wrist's yaw at that frame plus the turn. The runtime (runtime/wrist_turn.py) turns each action of the chunk to
+wrist's yaw at that frame plus the turn, taken as the equal grasp nearest the yaw the command started at (so the
+wrist never turns more than half a period, whatever the locator says). The runtime (runtime/wrist_turn.py) turns each action of the chunk to
 that yaw, at a bounded rate, until the first grasp cycle ends; position, tilt and gripper stay the policy's.
 
 Torch-free: the runtime's policy node and `sudd eval` use it through the bundle; `sudd export --turn-locator RUN`
@@ -103,4 +104,8 @@ class TurnQuery:
         self.asked += 1
         if float(np.linalg.norm(label)) >= self.spec.min_norm:
             self.sure += 1
-            self.target = wrist + turn_of(label, self.spec.period)
+            # Of the equal grasps the answer names, the one nearest the start yaw: asked again and again as the
+            # wrist turns, a locator biased one way would otherwise walk the target round without end.
+            P = self.spec.period
+            off = wrist + turn_of(label, P) - self.start
+            self.target = self.start + off - P * round(off / P)

@@ -96,6 +96,21 @@ def test_a_sure_answer_sets_the_target_from_the_wrist_it_was_asked_at_and_an_uns
     assert not TurnQuery(b, STACK, "pick_place").active and not TurnQuery(b, STACK, "stack", enabled=False).active
 
 
+def test_the_target_is_the_equal_grasp_nearest_the_start_yaw_whatever_the_locator_says():
+    """A locator that says "+30 degrees" whatever it sees would, asked at every chunk as the wrist turns, walk the
+    target round without end; the target is the grasp within half a period (45 degrees) of the start yaw."""
+    b = StillBundle(families=("stack",), turn_deg=0.0)
+    a = 4.0 * np.radians(30.0)
+    b.turn_label = lambda images, proprio, emb: np.array([np.cos(a), np.sin(a)], np.float32)
+    q = TurnQuery(b, STACK, "stack")
+    targets = []
+    for wrist in np.radians([0.0, 10.0, 14.0, 16.0, 40.0, -50.0]):
+        q.ask({}, _proprio(0.2 + wrist))
+        targets.append(np.degrees(q.target - 0.2))
+    np.testing.assert_allclose(targets, [30.0, 40.0, 44.0, -44.0, -20.0, -20.0], atol=1e-6)
+    assert q.turn == pytest.approx(np.radians(-20.0))
+
+
 def test_the_held_yaw_is_reached_at_a_bounded_rate_and_leaves_the_rest():
     start = np.r_[0.1, 0.5, 0.3, rot6d_of(_about_z(0.3) @ DOWN)]
     target = 0.3 + np.radians(20.0)

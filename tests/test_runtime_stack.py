@@ -257,25 +257,33 @@ def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
     assert policy.procs == {} and policy.bus is None
 
 
-def _nine_chunks(bundle, events=None, **policy):
-    """Run the sim stack with these policy-node settings until 9 chunks arrived: (policy's ready info, [(arrival,
-    chunk)], the robot node's exit report); `events`, a list, receives the StatusEvents."""
-    la = Launcher(sim_stack(str(bundle), task=TASK, seed=SEED, **policy), hub="tcp/127.0.0.1:0")
+def _commanded(bundle, n: int, task: str = TASK, **policy):
+    """Run the sim stack on `task`'s seed-SEED scene with these policy-node settings, say the scene's command and
+    wait for `n` chunks: (every node's ready info, the StatusEvents, [(arrival, chunk)], the robot node's report)."""
+    la = Launcher(sim_stack(str(bundle), task=task, seed=SEED, **policy), hub="tcp/127.0.0.1:0")
     la.start()
-    chunks = []
+    events, chunks = [], []
+    la.bus.subscribe(B.SAFETY_EVENT, events.append)
     la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
-    if events is not None:
-        la.bus.subscribe(B.SAFETY_EVENT, events.append)
     try:
         info = la.wait_ready(90)
         la.say(info["robot"]["instruction"], "r")
         deadline = time.monotonic() + 30
-        while len(chunks) < 9 and time.monotonic() < deadline:
+        while len(chunks) < n and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
         la.shutdown("test end")
-    assert len(chunks) >= 9, len(chunks)
-    return info["policy"], chunks, _clean_exit(la)
+    assert len(chunks) >= n, len(chunks)
+    return info, events, chunks, _clean_exit(la)
+
+
+def _nine_chunks(bundle, events=None, **policy):
+    """Run the sim stack with these policy-node settings until 9 chunks arrived: (policy's ready info, [(arrival,
+    chunk)], the robot node's exit report); `events`, a list, receives the StatusEvents."""
+    info, seen, chunks, rob = _commanded(bundle, 9, **policy)
+    if events is not None:
+        events.extend(seen)
+    return info["policy"], chunks, rob
 
 
 def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
@@ -332,21 +340,8 @@ def test_phases_run_a_drawer_put_command_as_its_first_skill_at_that_skills_pace(
         **manifest, "pace": {"drawer_open": 0.5}, "tasks": [*manifest["tasks"], "drawer_put", "drawer_open"],
         "phased": ["drawer_put"],
         "instructions": [*manifest["instructions"], instruction]}))
-    la = Launcher(sim_stack(str(phased), task="drawer_put", seed=SEED), hub="tcp/127.0.0.1:0")
-    la.start()
-    events, chunks = [], []
-    la.bus.subscribe(B.SAFETY_EVENT, events.append)
-    la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
-    try:
-        info = la.wait_ready(90)
-        assert info["robot"]["instruction"] == instruction and info["policy"]["phased"] == ["drawer_put"]
-        la.say(instruction, "p")
-        deadline = time.monotonic() + 30
-        while len(chunks) < 6 and time.monotonic() < deadline:
-            time.sleep(0.05)
-    finally:
-        la.shutdown("test end")
-    _clean_exit(la)
+    info, events, chunks, _ = _commanded(phased, 6, task="drawer_put")
+    assert info["robot"]["instruction"] == instruction and info["policy"]["phased"] == ["drawer_put"]
     accepted = [e for e in events if e.kind == "command_accepted"]
     assert len(accepted) == 1 and "drawer_put at speed 1" in accepted[0].message, accepted
     phases = [e for e in events if e.kind == "policy_phase"]
@@ -358,3 +353,47 @@ def test_phases_run_a_drawer_put_command_as_its_first_skill_at_that_skills_pace(
     assert [e.message for e in phases[1:]] == want[1:len(phases)]
     first = chunks[0][1]  # inferred in phase 1: its actions 1 / (10 Hz x 0.5) apart
     assert np.allclose(np.diff(first.times_ns), 2e8)
+
+
+def test_the_turn_query_turns_the_wrist_of_a_stack_command_at_a_bounded_rate(bundle, tmp_path):
+    """A stack command to a bundle whose turn locator always answers "turn 30 degrees" (policy.testing's constant
+    locator): the policy node says the turn once (`policy_turn`, 30 degrees from the wrist's yaw at the first
+    frame), and the yaws of the actions it sends turn towards it at no more than 0.6 rad/s (runtime/wrist_turn.py).
+    Asked again as the wrist turns, this locator, blind to the turn, says +30 again: the target stays the equal grasp
+    nearest the start yaw, so the wrist never turns more than 45 degrees from it. The untrained policy's gripper
+    is held open (a first grasp cycle ends the turn)."""
+    import json
+
+    from policy.action_frame import rotations
+    from policy.bundle import sha256_file
+    from policy.testing import constant_turn_locator
+    from runtime.wrist_turn import DEFAULT_RATE, yaw
+    from sim.build import build_episode
+
+    instruction = build_episode("stack", SEED, "off", "fast").instruction
+    turned = constant_turn_locator(bundle, tmp_path / "turned", "stack", 30.0)
+    manifest = json.loads((turned / "manifest.json").read_text())
+    # The untrained gripper column flips open and shut, and its first grasp cycle would end the turn: keep the
+    # hand open (the gripper action's scale so large that every sample reads about 0).
+    with np.load(turned / "stats.npz") as z:
+        stats = {k: z[k] for k in z.files}
+    stats["action_scale"][9], stats["action_offset"][9] = 1e4, 0.0
+    np.savez(turned / "stats.npz", **stats)
+    manifest["files"]["stats.npz"] = {"bytes": (turned / "stats.npz").stat().st_size,
+                                      "sha256": sha256_file(turned / "stats.npz")}
+    (turned / "manifest.json").write_text(json.dumps({
+        **manifest, "tasks": sorted({*manifest["tasks"], "stack"}),
+        "instructions": [*manifest["instructions"], instruction]}))
+    info, events, chunks, _ = _commanded(turned, 30, task="stack")
+    assert info["robot"]["instruction"] == instruction
+    turns = [e for e in events if e.kind == "policy_turn"]
+    assert len(turns) == 1 and turns[0].values["turn_deg"] == pytest.approx(30.0, abs=1e-3), turns
+    assert "+30.0 deg" in turns[0].message
+    yaws = np.array([[yaw(rotations(a[3:9])) for a in c.actions] for _, c in chunks])
+    start = yaws[0, 0] - DEFAULT_RATE * 0.1  # the first action is already one step of the turn along
+    rel = np.degrees((yaws - start + np.pi) % (2 * np.pi) - np.pi)
+    assert rel[0, -1] == pytest.approx(8 * np.degrees(DEFAULT_RATE * 0.1), abs=0.5)  # 8 steps towards +30
+    assert np.all(np.abs(rel) < 45.0 + 1.0), rel.round(1)  # never past the grasp nearest the start yaw
+    steps = np.abs(np.degrees((np.diff(yaws, axis=1) + np.pi) % (2 * np.pi) - np.pi))
+    assert np.all(steps < np.degrees(DEFAULT_RATE * 0.1) + 0.5), steps.round(2)  # 0.6 rad/s at 10 Hz
+    assert rel[:, -1].max() > 29.0  # it reached the turn asked for
