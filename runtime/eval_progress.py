@@ -32,14 +32,15 @@ object's footprint onto itself (a half turn for a bar, a quarter for a square bl
 yaw is None). A bar closed along its length is missed however near the TCP comes.
 
 `releases` says where the named object was each time the fingers stopped holding it, for a task with a goal
-bin or, for stack, the block to put it on: its offset from the goal's centre (x, y, in the world frame), the
-TCP's, its height over where it started and its horizontal speed; for stack also `over_cm`, how high over
-resting on the other block it was let go (a block dropped from 3 cm tips off one it lands 2 cm off). A place that misses by a few centimetres beside the bin reads apart from a drop on
-the way (tens of centimetres), from a release too high and from one made while still moving; the sign of the
-offsets shows a bias to one side, and the TCP's whether the arm arrived off or the object hung off the TCP.
-With the plan the controller follows (`plan`: the newest accepted chunk), `aim_dx_cm` and `aim_dy_cm` say
-where that chunk wanted the TCP at the moment of the let-go: an aim off the centre is the policy's error, a
-TCP off an aim on the centre the controller's.
+bin, the drawer's inside (drawer_put, drawer_stow) or, for stack, the block to put it on: its offset from the
+goal's centre (x, y, in the world frame), the TCP's, its height over where it started and its horizontal speed;
+for stack also `over_cm`, how high over resting on the other block it was let go (a block dropped from 3 cm tips
+off one it lands 2 cm off); for the drawer `outside_cm`, how far beyond the inside's edges (0: over it). A place
+that misses by a few centimetres beside the bin reads apart from a drop on the way (tens of centimetres), from a
+release too high and from one made while still moving; the sign of the offsets shows a bias to one side, and the
+TCP's whether the arm arrived off or the object hung off the TCP. With the plan the controller follows (`plan`:
+the newest accepted chunk), `aim_dx_cm` and `aim_dy_cm` say where that chunk wanted the TCP at the moment of the
+let-go: an aim off the centre is the policy's error, a TCP off an aim on the centre the controller's.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ FAILURES = ("no_grasp", "wrong_object", "target_not_placed")
 TARGET_ENDS = ("held", "outside", "wrong_bin", "goal", "released")
 LIFT_M = 0.01
 CABINET_PARAM = "cabinet"  # a task instance with this parameter has the drawer
+DRAWER_INSIDE = f"{CABINET}/inside"  # the drawer's cavity, a box site that slides with it
 STACK_BASE = "bottom"  # stack's goal: the object the named one goes on
 
 
@@ -126,11 +128,17 @@ class GraspProgress:
 
     def _release(self, world, inst) -> None:
         goal = inst.params.get("bin") or inst.params.get(STACK_BASE)
-        if not goal:
+        at, over = self._view.position(self.target), {}
+        if goal:
+            centre = self._view.position(goal)[:2]
+        elif CABINET_PARAM in inst.params:  # the drawer's inside, wherever the drawer has slid to
+            lo, hi = self._view.aabb(DRAWER_INSIDE)
+            centre = (lo[:2] + hi[:2]) / 2.0
+            short = np.maximum(np.maximum(lo[:2] - at[:2], at[:2] - hi[:2]), 0.0)
+            over = {"outside_cm": round(100 * float(np.linalg.norm(short)), 1)}
+        else:
             return
-        at, centre = self._view.position(self.target), self._view.position(goal)[:2]
-        over = {}
-        if goal == inst.params.get(STACK_BASE):  # stack: how high over resting on the other it was let go, read
+        if goal and goal == inst.params.get(STACK_BASE):  # stack: how high over resting on the other it was let go, read
             # at the last tick it was held (a block let go 3 cm up has fallen by the next tick, 0.1 s on)
             rest = self._view.position(goal)[2] + inst.obj(goal).half_height + inst.obj(self.target).half_height
             over = {"over_cm": round(100 * float(self._held_at[2] - rest), 1)}

@@ -76,6 +76,8 @@ def summarise(records: list[dict]) -> list[dict]:
                                             "target_not_placed": _last_release_in_hand_cm(tnp)},
                      "release_over_cm": {"success": _last_release_over_cm(ok),
                                          "target_not_placed": _last_release_over_cm(tnp)},
+                     "release_outside_cm": {"success": _last_release_outside_cm(ok),
+                                            "target_not_placed": _last_release_outside_cm(tnp)},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end"))),
                      "failed_drawer_opened": sum(f >= OPEN_FRACTION for f in drawer) if drawer else None})
     return rows
@@ -110,6 +112,12 @@ def _last_release_over_cm(records: list[dict]) -> float | None:
     return _median_at_last_let_go(records, lambda x: x.get("over_cm"))
 
 
+def _last_release_outside_cm(records: list[dict]) -> float | None:
+    """The drawer: how far beyond the edges of its inside the named object last left the fingers (0 over it; None
+    for a task without the drawer)."""
+    return _median_at_last_let_go(records, lambda x: x.get("outside_cm"))
+
+
 def markdown_table(rows: list[dict]) -> str:
     """One line per (suite, task): the policy's and the collector's success side by side."""
     by = {(r["suite"], r["task"], r["who"]): r for r in rows}
@@ -136,7 +144,7 @@ def failure_table(rows: list[dict]) -> str:
              "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
              "| target_not_placed: the object ended "
              "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; how far off "
-             "the TCP the fingers held it; stack: how high over resting on the other) "
+             "the TCP the fingers held it; stack: how high over resting on the other; drawer: how far outside its inside) "
              f"| drawer opened (>= {OPEN_FRACTION:.0%} of its travel) |",
              "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 6)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):
@@ -151,11 +159,13 @@ def failure_table(rows: list[dict]) -> str:
         off = (r.get("release_off_cm") or {}).get("target_not_placed")
         aim = (r.get("release_aim_off_cm") or {}).get("target_not_placed")
         over = (r.get("release_over_cm") or {}).get("target_not_placed")
+        outside = (r.get("release_outside_cm") or {}).get("target_not_placed")
         hand = (r.get("release_in_hand_cm") or {}).get("target_not_placed")
         how = "; ".join(([] if aim is None else [f"aimed {aim:.1f} cm"])
                         + ([] if hand is None else [f"held {hand:.1f} cm off"]))
         cells.append("-" if off is None else f"{off:.1f} cm" + (f" ({how})" if how else "")
-                     + ("" if over is None else f", {over:.1f} cm over its rest"))
+                     + ("" if over is None else f", {over:.1f} cm over its rest")
+                     + ("" if outside is None else f", {outside:.1f} cm outside the drawer"))
         opened = r.get("failed_drawer_opened")
         cells.append("-" if opened is None else str(opened))
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")

@@ -88,6 +88,25 @@ def test_a_stack_release_says_how_far_off_and_how_high_over_the_block_below():
     assert abs(out.releases[0]["over_cm"] - release["over_cm"] - 6.0) < 1.0, out.record()
 
 
+def test_a_drawer_release_says_how_far_outside_the_drawers_inside_it_was_let_go():
+    from datagen.episode import DatagenConfig, run_episode
+
+    ep = run_episode("drawer_stow", SEED, DatagenConfig(dr="heavy"))
+    assert ep.meta["success"]
+    out = run_policy_episode(Replay(ep.action), "drawer_stow", SEED, dr="heavy")
+    assert out.success, out.record()
+    (release,) = out.releases  # the collector lets go over the drawer's inside
+    assert release["outside_cm"] == 0.0 and np.hypot(release["dx_cm"], release["dy_cm"]) < 6.0, release
+    early = np.array(ep.action)  # let go half way from the grasp to the collector's let-go: short of the drawer
+    grip = early[:, 9]
+    grasp = int(np.argmax(grip > 0.5))
+    opens = grasp + int(np.argmax(grip[grasp:] < 0.5))
+    early[(grasp + opens) // 2:, 9] = grip[opens]
+    out = run_policy_episode(Replay(early), "drawer_stow", SEED, dr="heavy", time_limit_factor=0.6)
+    assert not out.success and out.target_end == "outside", out.record()
+    assert out.releases[0]["outside_cm"] > 3.0, out.releases
+
+
 @pytest.mark.parametrize("change,where", [("never_open", "held"), ("open_halfway", "outside")])
 def test_a_failure_says_where_the_named_object_ended(collected, change, where):
     actions = np.array(collected.action)
@@ -370,7 +389,8 @@ def test_summary_table_and_chart(tmp_path):
                       "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
                       "| target_not_placed: the object ended "
                       "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; "
-                      "how far off the TCP the fingers held it; stack: how high over resting on the other) "
+                      "how far off the TCP the fingers held it; stack: how high over resting on the other; drawer: how far "
+                      "outside its inside) "
                       "| drawer opened (>= 80% of its travel) |")
     # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm) and
     # where the TCP was
@@ -388,6 +408,12 @@ def test_summary_table_and_chart(tmp_path):
     (row,) = summarise(stack)
     assert row["release_over_cm"]["target_not_placed"] == 3.0
     assert "| released 3 | 3.0 cm, 3.0 cm over its rest | - |" in failure_table([row])
+    stow = [{"suite": "seen", "task": "drawer_stow", "who": "policy", "success": False, "sim_seconds": 30.0,
+             "failure": "target_not_placed", "end": "timeout", "target_end": "outside", "drawer_max": 0.95,
+             "releases": [{"dx_cm": 0.0, "dy_cm": d, "outside_cm": o}]} for d, o in ((9.0, 4.0), (8.0, 2.0))]
+    (row,) = summarise(stow)
+    assert row["release_outside_cm"] == {"success": None, "target_not_placed": 3.0}
+    assert "| outside 2 | 8.5 cm, 3.0 cm outside the drawer | 2 |" in failure_table([row])
     assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
     png = plot(rows, tmp_path / "chart.png")
     from PIL import Image
