@@ -126,8 +126,8 @@ def constant_turn_locator(bundle_dir: str | Path, dst: str | Path, family: str, 
     import onnx
     from onnx import TensorProto, helper
 
-    from policy.grasp_axis import turn_label
     from policy.bundle import sha256_file
+    from policy.grasp_axis import turn_label
 
     out = linked_copy(bundle_dir, dst)
     m = json.loads((out / "manifest.json").read_text())

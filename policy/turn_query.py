@@ -16,8 +16,9 @@ views along the way to the grasp) is asked the command at every inference until 
 answer is a (cos, sin) pair whose length says how sure it is (a regression onto unit vectors shrinks where the
 frames do not tell: the object small, or out of view); one at least `min_norm` long sets the target yaw, the
 wrist's yaw at that frame plus the turn, taken as the equal grasp nearest the yaw the command started at (so the
-wrist never turns more than half a period, whatever the locator says). The runtime (runtime/wrist_turn.py) turns each action of the chunk to
-that yaw, at a bounded rate, until the first grasp cycle ends; position, tilt and gripper stay the policy's.
+wrist never turns more than half a period, whatever the locator says). The runtime (runtime/wrist_turn.py) turns
+each action of the chunk to that yaw, at a bounded rate, until the first grasp cycle ends; position, tilt and
+gripper stay the policy's.
 
 Torch-free: the runtime's policy node and `sudd eval` use it through the bundle; `sudd export --turn-locator RUN`
 records it (the manifest's `turn_query`).

@@ -131,15 +131,16 @@ class GraspProgress:
         at, over = self._view.position(self.target), {}
         if goal:
             centre = self._view.position(goal)[:2]
-        elif CABINET_PARAM in inst.params:  # the drawer's inside, wherever the drawer has slid to
+        elif CABINET_PARAM in inst.params:  # the drawer's inside wherever it has slid to, as a world-aligned box:
+            # the box the success check (StateView.inside) reads
             lo, hi = self._view.aabb(DRAWER_INSIDE)
             centre = (lo[:2] + hi[:2]) / 2.0
             short = np.maximum(np.maximum(lo[:2] - at[:2], at[:2] - hi[:2]), 0.0)
             over = {"outside_cm": round(100 * float(np.linalg.norm(short)), 1)}
         else:
             return
-        if goal and goal == inst.params.get(STACK_BASE):  # stack: how high over resting on the other it was let go, read
-            # at the last tick it was held (a block let go 3 cm up has fallen by the next tick, 0.1 s on)
+        if goal and goal == inst.params.get(STACK_BASE):  # stack: how high over resting on the other it was let go,
+            # read at the last tick it was held (a block let go 3 cm up has fallen by the next tick, 0.1 s on)
             rest = self._view.position(goal)[2] + inst.obj(goal).half_height + inst.obj(self.target).half_height
             over = {"over_cm": round(100 * float(self._held_at[2] - rest), 1)}
         dx, dy = (at[:2] - centre) * 100

@@ -144,7 +144,8 @@ def failure_table(rows: list[dict]) -> str:
              "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
              "| target_not_placed: the object ended "
              "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; how far off "
-             "the TCP the fingers held it; stack: how high over resting on the other; drawer: how far outside its inside) "
+             "the TCP the fingers held it; stack: how high over resting on the other; drawer: how far outside its "
+             "inside) "
              f"| drawer opened (>= {OPEN_FRACTION:.0%} of its travel) |",
              "|---|---|---|" + "---|" * (len(FAILURES) + len(ends) + 6)]
     for r in sorted(pol, key=lambda r: (_suite_rank(r["suite"]), r["task"])):

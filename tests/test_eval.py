@@ -389,8 +389,8 @@ def test_summary_table_and_chart(tmp_path):
                       "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
                       "| target_not_placed: the object ended "
                       "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; "
-                      "how far off the TCP the fingers held it; stack: how high over resting on the other; drawer: how far "
-                      "outside its inside) "
+                      "how far off the TCP the fingers held it; stack: how high over resting on the other; "
+                      "drawer: how far outside its inside) "
                       "| drawer opened (>= 80% of its travel) |")
     # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm) and
     # where the TCP was
