@@ -78,7 +78,8 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
             "sim_seconds": round(rob["success_after_s"], 3) if success and rob.get("success_after_s") else
             round(time.monotonic() - t0, 3), "end": end, "stop_reason": first_stop.get("reason", ""),
             "stop_speed_cm_s": None if speed is None else round(100.0 * speed, 1),
-            "goal_point": pol.get("goal_point"), "chunks": pol.get("chunks"), "inference_ms": infer if "p50" in infer else None, "failure": "",
+            "goal_point": pol.get("goal_point"), "turn_deg": pol.get("turn_deg"), "chunks": pol.get("chunks"),
+            "inference_ms": infer if "p50" in infer else None, "failure": "",
             "realtime": {"controller_on_time": cs.get("on_time"), "controller_rate_hz": cs.get("rate_hz"),
                          "track_err_p50_mrad": cs.get("track_err_p50_mrad"),
                          "obs_to_accepted_ms": (rob.get("latency_ms") or {}).get("accepted"),

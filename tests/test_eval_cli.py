@@ -198,6 +198,7 @@ def test_eval_cli_realtime_runs_the_policy_through_the_live_stack(untrained_bund
         assert 0.0 < live["controller_on_time"] <= 1.0 and live["controller_rate_hz"] > 100.0, live
         assert set(live["exit_codes"].values()) == {0}, live  # every node of the stack ended cleanly
         assert r["sim_seconds"] >= 0.9 * 0.05 * 30  # it ran the family's time limit (30 s x 0.05) live
+        assert "turn_deg" in r and r["turn_deg"] is None  # the policy node's turn, none without a turn query
     para = next(r for r in recs if r["suite"] == "paraphrase")
     assert para["command"] != para["instruction"]  # said in the unseen phrasing, as the lockstep eval does
     assert "Realtime" in (out / "results.md").read_text()

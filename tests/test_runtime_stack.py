@@ -259,7 +259,7 @@ def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
 
 def _commanded(bundle, n: int, task: str = TASK, **policy):
     """Run the sim stack on `task`'s seed-SEED scene with these policy-node settings, say the scene's command and
-    wait for `n` chunks: (every node's ready info, the StatusEvents, [(arrival, chunk)], the robot node's report)."""
+    wait for `n` chunks: (every node's ready info, the StatusEvents, [(arrival, chunk)], every node's exit report)."""
     la = Launcher(sim_stack(str(bundle), task=task, seed=SEED, **policy), hub="tcp/127.0.0.1:0")
     la.start()
     events, chunks = [], []
@@ -274,16 +274,17 @@ def _commanded(bundle, n: int, task: str = TASK, **policy):
     finally:
         la.shutdown("test end")
     assert len(chunks) >= n, len(chunks)
-    return info, events, chunks, _clean_exit(la)
+    _clean_exit(la)
+    return info, events, chunks, la.reports
 
 
 def _nine_chunks(bundle, events=None, **policy):
     """Run the sim stack with these policy-node settings until 9 chunks arrived: (policy's ready info, [(arrival,
     chunk)], the robot node's exit report); `events`, a list, receives the StatusEvents."""
-    info, seen, chunks, rob = _commanded(bundle, 9, **policy)
+    info, seen, chunks, reports = _commanded(bundle, 9, **policy)
     if events is not None:
         events.extend(seen)
-    return info["policy"], chunks, rob
+    return info["policy"], chunks, reports["robot"]
 
 
 def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
@@ -384,11 +385,11 @@ def test_the_turn_query_turns_the_wrist_of_a_stack_command_at_a_bounded_rate(bun
     (turned / "manifest.json").write_text(json.dumps({
         **manifest, "tasks": sorted({*manifest["tasks"], "stack"}),
         "instructions": [*manifest["instructions"], instruction]}))
-    info, events, chunks, _ = _commanded(turned, 30, task="stack")
+    info, events, chunks, reports = _commanded(turned, 30, task="stack")
     assert info["robot"]["instruction"] == instruction
     turns = [e for e in events if e.kind == "policy_turn"]
     assert len(turns) == 1 and turns[0].values["turn_deg"] == pytest.approx(30.0, abs=1e-3), turns
-    assert "+30.0 deg" in turns[0].message
+    assert "+30.0 deg" in turns[0].message and reports["policy"]["turn_deg"] == pytest.approx(30.0, abs=0.01)
     yaws = np.array([[yaw(rotations(a[3:9])) for a in c.actions] for _, c in chunks])
     start = yaws[0, 0] - DEFAULT_RATE * 0.1  # the first action is already one step of the turn along
     rel = np.degrees((yaws - start + np.pi) % (2 * np.pi) - np.pi)

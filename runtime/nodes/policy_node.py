@@ -313,6 +313,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             turn, sure = current["turn"], current["turn"].sure
                             a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
+                                report["turn_deg"] = round(float(np.degrees(turn.turn)), 2)
                                 event("policy_turn", "info", f"the wrist turns {np.degrees(turn.turn):+.1f} deg to "
                                       "grasp square to the object's faces", turn_deg=float(np.degrees(turn.turn)))
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
