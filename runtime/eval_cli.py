@@ -2,7 +2,9 @@
 
 Each episode is one job (suite, task, seed, who). Results are appended to OUT/results.jsonl as they finish,
 so an interrupted evaluation keeps what it did and a re-run with the same arguments resumes; OUT/summary.json,
-OUT/results.md (the table) and OUT/success.png (the chart) are rewritten at the end.
+OUT/results.md (the table) and OUT/success.png (the chart) are rewritten at the end. OUT/environment.json says
+the machine and packages the run started on: a run resumed elsewhere says so (its episodes would not be the same
+to the tick).
 """
 
 from __future__ import annotations
@@ -146,6 +148,11 @@ def _eval(args) -> int:
     key = lambda j: (j["suite"], j["task"], j["seed"], j["who"], j.get("mode", "lockstep"))  # noqa: E731
     have = {key(r) for r in done}
     todo = [j for j in jobs if key(j) not in have]
+    moved = environment_change(args.out, resuming=bool(have)) if todo else ""
+    if moved:
+        print(f"warning: {args.out} was started on another machine or install ({moved}); the episodes run now are "
+              "not comparable tick for tick with those already there (the rates are): use a new --out to keep one "
+              "run on one machine", file=sys.stderr)
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
@@ -231,6 +238,21 @@ def library_versions() -> dict[str, str]:
         except PackageNotFoundError:
             out[name] = "missing"
     return out
+
+
+def environment_change(out: Path, resuming: bool) -> str:
+    """What differs between the machine and packages OUT's results were started on (OUT/environment.json, written
+    by the first run into OUT) and these, e.g. "cpu: AMD EPYC (avx2) -> Intel Xeon (avx512f)"; "" when nothing
+    does or nothing is resumed."""
+    path, now = out / "environment.json", library_versions()
+    try:
+        before = json.loads(path.read_text()) if resuming else None
+    except (OSError, ValueError):
+        before = None  # results from before the file was written, or a file cut short: nothing to compare
+    if not isinstance(before, dict):
+        path.write_text(json.dumps(now, indent=2))
+        return ""
+    return "; ".join(f"{k}: {before.get(k)} -> {v}" for k, v in now.items() if before.get(k) != v)
 
 
 def cpu_description(cpuinfo: str | None = None) -> str:

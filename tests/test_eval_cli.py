@@ -6,7 +6,7 @@ import json
 import pytest
 
 
-def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
+def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path, monkeypatch, capsys):
     from runtime.cli import main
 
     args = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1",
@@ -34,6 +34,11 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path):
     assert (tmp_path / "success.png").stat().st_size > 1000
     assert main(args) == 0  # resumed: nothing left to run, nothing appended
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
+    capsys.readouterr()
+    monkeypatch.setattr("runtime.eval_cli.cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
+    assert main([*args, "--episodes", "2"]) == 0  # one more seed, resumed on another machine: it says so
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 6
+    assert "was started on another machine or install (cpu: " in capsys.readouterr().err
 
 
 def test_eval_cli_runs_exactly_the_listed_seeds(untrained_bundle, tmp_path, capsys):
@@ -220,3 +225,19 @@ def test_cpu_description_names_the_model_and_the_widest_vector_set():
     assert cpu_description(wide) == "AMD EPYC 7B13 (avx512f)"
     arm = "processor\t: 0\nFeatures\t: fp asimd evtstrm\n"
     assert cpu_description(arm).endswith("(asimd)")
+
+
+def test_a_resumed_eval_says_when_the_machine_or_packages_changed(tmp_path, monkeypatch):
+    from runtime import eval_cli
+
+    assert eval_cli.environment_change(tmp_path, resuming=False) == ""  # a fresh run records where it runs
+    first = json.loads((tmp_path / "environment.json").read_text())
+    assert first == eval_cli.library_versions()
+    assert eval_cli.environment_change(tmp_path, resuming=True) == ""  # resumed here: nothing to say
+    monkeypatch.setattr(eval_cli, "cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
+    said = eval_cli.environment_change(tmp_path, resuming=True)
+    assert said == f"cpu: {first['cpu']} -> Other CPU (avx512f)"
+    assert json.loads((tmp_path / "environment.json").read_text()) == first  # where the run started is kept
+    (tmp_path / "environment.json").unlink()  # results from before the record: nothing to compare, now recorded
+    assert eval_cli.environment_change(tmp_path, resuming=True) == ""
+    assert json.loads((tmp_path / "environment.json").read_text())["cpu"] == "Other CPU (avx512f)"
