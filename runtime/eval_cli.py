@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import signal
 import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
+
+from runtime.eval_environment import environment_change, library_versions
 
 EPILOG = """\
 suites (each on seeds OFFSET..OFFSET+N-1; keep OFFSET away from the training seeds):
@@ -221,56 +222,6 @@ def _eval(args) -> int:
         if args.filmstrips:
             print(f"failed policy episodes, frame by frame: {args.out / 'filmstrips'}")
     return 0
-
-
-def library_versions() -> dict[str, str]:
-    """What an eval's figures depend on: the same seeds and bundle give the same episodes only on the same physics
-    and inference (a fresh install of newer mujoco or onnxruntime moved drawer_put's episodes), and on the same
-    CPU's vector instructions (a new machine with the same packages moved 77 of step 33's 120 stack episodes:
-    policy/EXPERIMENTS.md, "The same bundle on another machine")."""
-    import platform
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {"python": platform.python_version(), "cpu": cpu_description()}
-    for name in ("numpy", "mujoco", "onnxruntime"):
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = "missing"
-    return out
-
-
-def environment_change(out: Path, resuming: bool) -> str:
-    """What differs between the machine and packages OUT's results were started on (OUT/environment.json, written
-    by the first run into OUT) and these, e.g. "cpu: AMD EPYC (avx2) -> Intel Xeon (avx512f)"; "" when nothing
-    does or nothing is resumed."""
-    path, now = out / "environment.json", library_versions()
-    try:
-        before = json.loads(path.read_text()) if resuming else None
-    except (OSError, ValueError):
-        before = None  # results from before the file was written, or a file cut short: nothing to compare
-    if not isinstance(before, dict):
-        path.write_text(json.dumps(now, indent=2))
-        return ""
-    return "; ".join(f"{k}: {before.get(k)} -> {v}" for k, v in now.items() if before.get(k) != v)
-
-
-def cpu_description(cpuinfo: str | None = None) -> str:
-    """The CPU's model and the widest vector instruction set it offers, e.g. "AMD EPYC (avx2)": the kernels
-    numpy, MuJoCo and onnxruntime pick, and so the last bits of their sums, follow it."""
-    import platform
-
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
-    model = re.search(r"^model name\s*:\s*(.+)$", cpuinfo, re.M)
-    flags = re.search(r"^(?:flags|Features)\s*:\s*(.+)$", cpuinfo, re.M)
-    name = model.group(1).strip() if model else (platform.processor() or platform.machine() or "unknown")
-    have = set(flags.group(1).split()) if flags else set()
-    widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "asimd") if f in have), None)
-    return f"{name} ({widest})" if widest else name
 
 
 def read_results(path: Path) -> list[dict]:

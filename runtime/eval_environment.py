@@ -1,0 +1,59 @@
+"""What an evaluation's episodes depend on besides the bundle and the seeds: the machine and the packages.
+
+Why: `sudd eval` with a fixed latency replays the same seeds to the tick, but only on the same physics and
+inference. A fresh install of newer mujoco or onnxruntime moved drawer_put's episodes; a new machine with the same
+packages moved 77 of step 33's 120 stack episodes (policy/EXPERIMENTS.md, "The same bundle on another machine"):
+numpy's, MuJoCo's and onnxruntime's kernels follow the CPU's vector instructions, and a closed loop through
+contact carries the last bit of a sum into another episode. The rates carry over; the episodes do not. So every
+eval records where it ran, and one resumed elsewhere says so.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import re
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+
+def library_versions() -> dict[str, str]:
+    """The CPU (`cpu_description`), Python and the packages that compute an episode, by name: version."""
+    out = {"python": platform.python_version(), "cpu": cpu_description()}
+    for name in ("numpy", "mujoco", "onnxruntime"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "missing"
+    return out
+
+
+def environment_change(out: Path, resuming: bool) -> str:
+    """What differs between the machine and packages OUT's results were started on (OUT/environment.json, written
+    by the first run into OUT) and these, e.g. "cpu: AMD EPYC (avx2) -> Intel Xeon (avx512f)"; "" when nothing
+    does or nothing is resumed."""
+    path, now = out / "environment.json", library_versions()
+    try:
+        before = json.loads(path.read_text()) if resuming else None
+    except (OSError, ValueError):
+        before = None  # results from before the file was written, or a file cut short: nothing to compare
+    if not isinstance(before, dict):
+        path.write_text(json.dumps(now, indent=2))
+        return ""
+    return "; ".join(f"{k}: {before.get(k)} -> {v}" for k, v in now.items() if before.get(k) != v)
+
+
+def cpu_description(cpuinfo: str | None = None) -> str:
+    """The CPU's model and the widest vector instruction set it offers, e.g. "AMD EPYC (avx2)": the kernels
+    numpy, MuJoCo and onnxruntime pick, and so the last bits of their sums, follow it."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    model = re.search(r"^model name\s*:\s*(.+)$", cpuinfo, re.M)
+    flags = re.search(r"^(?:flags|Features)\s*:\s*(.+)$", cpuinfo, re.M)
+    name = model.group(1).strip() if model else (platform.processor() or platform.machine() or "unknown")
+    have = set(flags.group(1).split()) if flags else set()
+    widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "asimd") if f in have), None)
+    return f"{name} ({widest})" if widest else name
