@@ -27,9 +27,11 @@ the most it was open at any tick and at the end, as fractions of its travel. dra
 pick, place inside, close); these with `held` say which one an episode reached.
 
 `closes` says how each close of the fingers before the named object was held missed it: the TCP's
-horizontal offset from the object and its yaw off the object's grasp yaw, modulo the turn that maps the
-object's footprint onto itself (a half turn for a bar, a quarter for a square block; none for a cylinder, whose
-yaw is None). A bar closed along its length is missed however near the TCP comes.
+horizontal offset from the object, its height over the object's centre (`up_cm`: a close square over a
+cylinder's middle that holds nothing was made too high or too low), and its yaw off the object's grasp yaw,
+modulo the turn that maps the object's footprint onto itself (a half turn for a bar, a quarter for a square
+block; none for a cylinder, whose yaw is None). A bar closed along its length is missed however near the TCP
+comes.
 
 `releases` says where the named object was each time the fingers stopped holding it, for a task with a goal
 bin, the drawer's inside (drawer_put, drawer_stow) or, for stack, the block to put it on: its offset from the
@@ -117,8 +119,9 @@ class GraspProgress:
     def _miss(self, world, inst) -> dict:
         T = world.tcp_pose()
         obj = inst.obj(self.target)
-        miss = {"off_cm": round(100 * float(np.linalg.norm(T[:2, 3] - self._view.position(self.target)[:2])), 1),
-                "yaw_off_deg": None}
+        at = self._view.position(self.target)
+        miss = {"off_cm": round(100 * float(np.linalg.norm(T[:2, 3] - at[:2])), 1),
+                "up_cm": round(100 * float(T[2, 3] - at[2]), 1), "yaw_off_deg": None}
         period = footprint_period(obj)
         if period is not None:
             off = (float(np.arctan2(T[1, 0], T[0, 0])) - grasp_yaw(obj, self._view.rotation(self.target))

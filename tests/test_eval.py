@@ -315,7 +315,8 @@ def test_each_close_before_the_grasp_says_how_far_off_and_how_turned_it_was(monk
         cmd[0], yaw[0] = c, y
         p(world, inst)
     # closed along the bar (90 degrees off its grasp yaw, across it), then 10 degrees short of across
-    assert p.closes == [{"off_cm": 3.0, "yaw_off_deg": -90.0}, {"off_cm": 3.0, "yaw_off_deg": -10.0}]
+    assert p.closes == [{"off_cm": 3.0, "up_cm": 3.0, "yaw_off_deg": -90.0},
+                        {"off_cm": 3.0, "up_cm": 3.0, "yaw_off_deg": -10.0}]
     lifted["obj0"] = True
     for c in (0.0, 1.0):  # once the named object is held, a close is no miss
         cmd[0] = c
