@@ -1,4 +1,6 @@
-"""`sudd eval`: the closed-loop episode (controller + safety + sim twins), the statistics, the report, the CLI.
+"""`sudd eval`: the closed-loop episode (controller + safety + sim twins) and what it reports of an episode.
+
+The statistics and the tables are tests/test_eval_report.py's; the grasp bookkeeping tests/test_eval_progress.py's.
 
 The decisive check: the data collector's own actions, replayed step by step through the evaluation loop
 (ControllerLoop -> SafetyFilter -> SimArm/SimGripper), solve the same seed. So the path a policy is judged on
@@ -11,7 +13,6 @@ import numpy as np
 import pytest
 
 from runtime.eval_progress import target_name
-from runtime.eval_report import failure_table, markdown_table, plot, summarise, wilson
 from runtime.evaluate import run_policy_episode
 from sim.build import build_episode
 from sim.dr_config import load_dr
@@ -229,105 +230,6 @@ def test_a_filmstrip_keeps_one_frame_per_interval_however_its_calls_fall(monkeyp
     assert grabbed == [0.0, 5.3, 6.0]  # after a gap, the next frame waits for the next multiple of 2 s
 
 
-def test_failure_classes():
-    from runtime.eval_progress import GraspProgress
-
-    p = GraspProgress()
-    p.target = "obj0"
-    assert p.failure(True) == "" and p.failure(False) == "no_grasp"
-    p.held = ["obj2"]
-    assert p.failure(False) == "wrong_object"
-    p.held = ["obj2", "obj0"]
-    assert p.failure(False) == "target_not_placed"
-    p.target = None  # a task that names no object (open the drawer): holding something is not "wrong"
-    assert p.failure(False) == "target_not_placed"
-
-
-def test_pads_on_an_object_hold_it_only_once_it_is_lifted(monkeypatch):
-    from types import SimpleNamespace
-
-    from runtime import eval_progress
-    from runtime.eval_progress import LIFT_M, GraspProgress
-
-    z = {"obj0": 0.02, "obj1": 0.02}
-    bin_at = {"bin_left": np.array([0.16, 0.64, 0.0]), "bin_right": np.array([-0.16, 0.64, 0.0])}
-    view = SimpleNamespace(holding=lambda name: name == "obj0", velocity=lambda name: np.array([0.03, -0.04, -0.2]),
-                           position=lambda name: bin_at[name] if name in bin_at else np.array([0.0, 0.5, z[name]]))
-    world = SimpleNamespace(tcp_pose=lambda: np.eye(4), gripper_command=lambda: 0.0)
-    bins = {"target": "obj0", "bin": "bin_left", "bins": [["left", 0.16], ["right", -0.16]]}
-    inst = SimpleNamespace(params=bins, objects=[SimpleNamespace(name=n) for n in z])
-    monkeypatch.setattr(eval_progress, "StateView", lambda w: view)
-    p = GraspProgress()
-    p(world, inst)  # fingertips on the bar's top, both pads touching: not a grasp
-    assert p.held == [] and p.failure(False) == "no_grasp"
-    z["obj0"] += LIFT_M + 0.005
-    p(world, inst)
-    assert p.held == ["obj0"] and p.failure(False) == "target_not_placed" and p.target_end(inst) == "held"
-    view.holding = lambda name: False
-    view.inside = lambda obj, container: False
-    p(world, inst)
-    assert p.target_lets_go == 1 and p.target_end(inst) == "outside"
-    # where it left the fingers, off bin_left, and how fast it went sideways then
-    assert p.releases == [{"dx_cm": -16.0, "dy_cm": -14.0, "tcp_dx_cm": -16.0, "tcp_dy_cm": -64.0, "aim_dx_cm": None,
-                           "aim_dy_cm": None, "up_cm": 1.5, "speed_cm_s": 5.0}]  # the TCP (at the origin) is off too
-    # with a plan, where it aimed at the let-go: between the knots around the world's time
-    p.plan([1.0, 2.0], [[0.16, 0.60, 0.1], [0.20, 0.70, 0.1]])
-    view.holding = lambda name: True
-    p(world, inst)
-    view.holding = lambda name: False
-    world.time = 1.5
-    p(world, inst)
-    assert p.target_lets_go == 2 and (p.releases[1]["aim_dx_cm"], p.releases[1]["aim_dy_cm"]) == (2.0, 1.0)
-    view.inside = lambda obj, container: container == "bin_right"
-    assert p.target_end(inst) == "wrong_bin"
-    assert p.target_end(SimpleNamespace(params={"target": "obj0"})) == "released"  # a task without bins
-    drawer_put = SimpleNamespace(params={"target": "obj0", "cabinet": {}})  # its goal is the drawer
-    view.inside = lambda obj, container: container == "cabinet"
-    assert p.target_end(drawer_put) == "goal"
-    view.inside = lambda obj, container: False
-    assert p.target_end(drawer_put) == "outside"
-
-
-def test_each_close_before_the_grasp_says_how_far_off_and_how_turned_it_was(monkeypatch):
-    from types import SimpleNamespace
-
-    from runtime import eval_progress
-    from runtime.eval_progress import GraspProgress
-    from sim.tasks.pick_place import footprint_period
-
-    lifted = {"obj0": False}
-    view = SimpleNamespace(holding=lambda name: lifted[name], rotation=lambda name: np.eye(3),  # a bar along x
-                           position=lambda name: np.array([0.0, 0.5, 0.02 + 0.05 * lifted[name]]))
-    cmd, yaw = [0.0], [0.0]
-
-    def tcp():
-        T = np.eye(4)
-        c, s = np.cos(yaw[0]), np.sin(yaw[0])
-        T[:2, :2], T[:3, 3] = [[c, -s], [s, c]], [0.03, 0.5, 0.05]
-        return T
-
-    world = SimpleNamespace(tcp_pose=tcp, gripper_command=lambda: cmd[0])
-    bar = SimpleNamespace(name="obj0", shape="bar", size=(0.045, 0.018, 0.018))
-    inst = SimpleNamespace(params={"target": "obj0"}, objects=[bar], obj=lambda name: bar)
-    monkeypatch.setattr(eval_progress, "StateView", lambda w: view)
-    p = GraspProgress()
-    for c, y in ((0.0, 0.0), (1.0, 0.0), (1.0, 0.0), (0.0, 0.0), (1.0, np.radians(80.0))):
-        cmd[0], yaw[0] = c, y
-        p(world, inst)
-    # closed along the bar (90 degrees off its grasp yaw, across it), then 10 degrees short of across
-    assert p.closes == [{"off_cm": 3.0, "up_cm": 3.0, "yaw_off_deg": -90.0},
-                        {"off_cm": 3.0, "up_cm": 3.0, "yaw_off_deg": -10.0}]
-    lifted["obj0"] = True
-    for c in (0.0, 1.0):  # once the named object is held, a close is no miss
-        cmd[0] = c
-        p(world, inst)
-    assert len(p.closes) == 2 and p.held == ["obj0"]
-    # a square block looks the same a quarter turn on, a cylinder at any yaw
-    block = SimpleNamespace(shape="block", size=(0.022, 0.022, 0.022))
-    assert footprint_period(block) == pytest.approx(np.pi / 2) and footprint_period(bar) == pytest.approx(np.pi)
-    assert footprint_period(SimpleNamespace(shape="cylinder", size=(0.022, 0.024))) is None
-
-
 def test_paraphrases_are_phrasings_the_data_never_used():
     dr = load_dr("heavy")
     for name in TASKS:
@@ -339,85 +241,3 @@ def test_paraphrases_are_phrasings_the_data_never_used():
         for k in range(5):
             p = family.paraphrase(inst, np.random.default_rng(k))
             assert p not in seen and all(v in p for v in fields.values())
-
-
-def test_wilson_interval():
-    assert wilson(0, 0) == (0.0, 1.0)
-    lo, hi = wilson(0, 10)
-    assert lo == pytest.approx(0.0) and hi == pytest.approx(0.2775, abs=1e-4)
-    lo, hi = wilson(10, 10)
-    assert lo == pytest.approx(0.7225, abs=1e-4) and hi == pytest.approx(1.0)
-    lo, hi = wilson(5, 10)
-    assert lo == pytest.approx(0.2366, abs=1e-4) and hi == pytest.approx(0.7634, abs=1e-4)
-    assert wilson(80, 100)[1] - wilson(80, 100)[0] < wilson(8, 10)[1] - wilson(8, 10)[0]
-
-
-def test_summary_table_and_chart(tmp_path):
-    recs = [{"suite": "seen", "task": "pick_place", "who": "policy", "success": s, "sim_seconds": 9.0,
-             "inference_ms": {"p50": 20.0}} for s in (True, True, True, False)]
-    recs += [{"suite": "seen", "task": "pick_place", "who": "collector", "success": s, "sim_seconds": 8.0}
-             for s in (True, False, False, False)]
-    recs[3].update(failure="wrong_object", end="protective_stop", closest_cm=1.0,  # held: not a no_grasp
-                   stop_speed_cm_s=17.5, stop_fingers_closed=True)
-    recs += [{"suite": "seen", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
-              "failure": "target_not_placed", "end": "timeout", "target_end": e, "releases": let_go}
-             for e, let_go in (("outside", [{"dx_cm": 30.0, "dy_cm": 0.0},
-                                            {"dx_cm": 6.0, "dy_cm": 8.0, "aim_dx_cm": 3.0, "aim_dy_cm": 4.0,
-                                             "tcp_dx_cm": 6.0, "tcp_dy_cm": 5.0}]),
-                               ("held", []), ("outside", [{"dx_cm": 0.0, "dy_cm": -20.0, "aim_dx_cm": None}]))]
-    recs[0]["releases"] = [{"dx_cm": 1.0, "dy_cm": 0.0, "up_cm": 4.0}]
-    recs += [{"suite": "paraphrase", "task": "pick_place", "who": "policy", "success": False, "sim_seconds": 30.0,
-              "failure": "no_grasp", "end": "timeout", "closest_cm": c, "closes": k}
-             for c, k in ((12.5, []), (3.0, [{"yaw_off_deg": y} for y in (-80.0, 88.0, 5.0, None)]),
-                          (7.25, [{"yaw_off_deg": 85.0}]))]
-    # drawer_put: two failures opened the drawer (one to the 80 % that counts), one never did; a success did
-    recs += [{"suite": "seen", "task": "drawer_put", "who": "policy", "success": s, "sim_seconds": 60.0,
-              "failure": "" if s else "no_grasp", "end": "success" if s else "timeout", "drawer_max": f}
-             for s, f in ((False, 0.85), (False, 0.79), (False, 0.02), (True, 1.0))]
-    rows = summarise(recs)
-    assert [(r["suite"], r["task"], r["who"], r["successes"], r["n"]) for r in rows] == [
-        ("seen", "drawer_put", "policy", 1, 4), ("seen", "pick_place", "collector", 1, 4),
-        ("seen", "pick_place", "policy", 3, 7), ("paraphrase", "pick_place", "policy", 0, 3)]
-    assert rows[0]["failed_drawer_opened"] == 1 and rows[2]["failed_drawer_opened"] is None
-    assert failure_table(rows[:1]).splitlines()[2].endswith("| - | - | 1 |")
-    rows = [r for r in rows if r["task"] == "pick_place"]
-    table = markdown_table(rows)
-    assert "| seen | pick_place | 3/7 = 43% [16, 75] | 1/4 = 25% [5, 70] | 9.0 s |" in table
-    assert "| paraphrase | pick_place | 0/3 = 0% [0, 56] | - | - |" in table
-    why = failure_table(rows).splitlines()
-    assert why[0] == ("| suite | task | failed | no_grasp | wrong_object | target_not_placed | ended: protective_stop "
-                      "| ended: timeout | force stops: TCP speed at the stop (median); how many with the fingers closed "
-                      "| no_grasp: median closest approach | no_grasp: yaw off at a close (median) "
-                      "| target_not_placed: the object ended "
-                      "| target_not_placed: let go off the goal's centre (median; where the chunk aimed the TCP; "
-                      "how far off the TCP the fingers held it; stack: how high over resting on the other; "
-                      "drawer: how far outside its inside) "
-                      "| drawer opened (>= 80% of its travel) |")
-    # the last let-go counts: 10 cm (after a drop at 30) and 20 cm; only the first recorded an aim (5 cm) and
-    # where the TCP was
-    assert why[2:] == ["| seen | pick_place | 4 | 0 | 1 | 3 | 1 | 3 | 17.5 cm/s; 1 closed | - | - | held 1, outside 2 "
-                       "| 15.0 cm (aimed 5.0 cm; held 3.0 cm off) | - |",
-                       "| paraphrase | pick_place | 3 | 3 | 0 | 0 | 0 | 3 | - | 7.2 cm | 85 deg | - | - | - |"]
-    assert rows[1]["release_off_cm"] == {"success": 1.0, "target_not_placed": 15.0}
-    assert rows[1]["release_aim_off_cm"] == {"success": None, "target_not_placed": 5.0}
-    # the one let-go that recorded its TCP: 3 cm off it in the fingers (the other recorded none)
-    assert rows[1]["release_in_hand_cm"] == {"success": None, "target_not_placed": 3.0}
-    assert rows[1]["release_over_cm"] == {"success": None, "target_not_placed": None}  # bins: no block below
-    stack = [{"suite": "seen", "task": "stack", "who": "policy", "success": False, "sim_seconds": 30.0,
-              "failure": "target_not_placed", "end": "timeout", "target_end": "released",
-              "releases": [{"dx_cm": 0.0, "dy_cm": d, "over_cm": h}]} for d, h in ((2.0, 3.0), (3.0, 5.0), (4.0, 1.0))]
-    (row,) = summarise(stack)
-    assert row["release_over_cm"]["target_not_placed"] == 3.0
-    assert "| released 3 | 3.0 cm, 3.0 cm over its rest | - |" in failure_table([row])
-    stow = [{"suite": "seen", "task": "drawer_stow", "who": "policy", "success": False, "sim_seconds": 30.0,
-             "failure": "target_not_placed", "end": "timeout", "target_end": "outside", "drawer_max": 0.95,
-             "releases": [{"dx_cm": 0.0, "dy_cm": d, "outside_cm": o}]} for d, o in ((9.0, 4.0), (8.0, 2.0))]
-    (row,) = summarise(stow)
-    assert row["release_outside_cm"] == {"success": None, "target_not_placed": 3.0}
-    assert "| outside 2 | 8.5 cm, 3.0 cm outside the drawer | 2 |" in failure_table([row])
-    assert failure_table([r for r in rows if r["who"] == "collector"]) == ""
-    png = plot(rows, tmp_path / "chart.png")
-    from PIL import Image
-
-    with Image.open(png) as im:
-        assert im.size[0] > 300 and len(np.unique(np.asarray(im.convert("L")))) > 5
