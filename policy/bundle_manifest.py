@@ -7,9 +7,9 @@ from __future__ import annotations
 from policy.action_frame import FRAMES
 from policy.goal_query import goal_query_spec
 from policy.object_query import object_query_spec
-from policy.turn_query import turn_query_spec
 from policy.pace import bundle_pace
 from policy.phased import bundle_phased
+from policy.turn_query import turn_query_spec
 
 FORMAT = "sudd-policy-bundle"
 SUPPORTED_VERSIONS = (1,)

@@ -287,6 +287,7 @@ def _locator_line(question: str, s: dict, args) -> str:
             f"{b['goal_cm_p75']:.2f} -> {val['goal_cm_p75']:.2f}); next: sudd export {args.init_from} --out BUNDLE "
             f"--goal-query FAMILY --goal-query-data DATA --goal-locator {s['run_dir']}")
 
+
 def _validate(args) -> int:
     from policy.validate import validate_model
 

@@ -187,8 +187,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
 
 def _kept_queries(bundle_dir: str | Path, policy_cfg, data_info: dict, anew: set = frozenset()):
     """(goal table, goal locator, object table, object locator, turn table, turn locator) of a bundle, for
-    `queries_from`; the queries in
-    `anew` ("goal_query", "object_query") are measured by this export instead, so they come back None."""
+    `queries_from`; the queries in `anew` ("goal_query", "object_query") are measured by this export instead, so
+    they come back None."""
     from policy.bundle_import import locator_from_bundle
     from policy.goal_locator import check_compatible
 

@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                "  sudd export runs/ft --out bundles/ft --queries-from policy/bundles/multitask \\\n"
                "      --pace drawer_close=0.5,drawer_open=0.5 --phased drawer_put   # a fine-tuned denoiser\n"
                "  sudd export policy/bundles/multitask --out bundles/mt5 --queries-from policy/bundles/multitask \\\n"
-               "      --turn-locator runs/turnloc    # ... and the wrist turn asked at the goal query's look\n"
+               "      --turn-locator runs/turnloc    # ... and the wrist turn, asked on the way to the grasp\n"
                "  sudd export runs/pp --out bundles/pp --fp32-weights # twice the bytes, no rounding\n"
                "  sudd export --restore-text-encoder policy/bundles/demo")
     ex.add_argument("run", type=Path, nargs="?", help="run directory (sudd train --out), or a bundle to export again")
@@ -79,8 +79,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.add_argument("--object-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --object-locator` run it asks; exported as object_locator.onnx")
     ex.add_argument("--turn-locator", type=Path, default=None, metavar="RUN",
-                    help="the `sudd pretrain --turn-locator` run the turn query asks at the goal query's look (how "
-                         "far the wrist turns to grasp square to the object, policy/turn_query.py); exported as "
+                    help="the `sudd pretrain --turn-locator` run the turn query asks on the way to the grasp (how far "
+                         "the wrist turns to grasp square to the object, policy/turn_query.py); exported as "
                          "turn_locator.onnx, its check on the run's --data recorded")
     ex.add_argument("--queries-from", type=Path, default=None, metavar="BUNDLE",
                     help="keep BUNDLE's goal, object and turn queries: their tables as measured and their locators, "

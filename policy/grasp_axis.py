@@ -83,6 +83,12 @@ def turn_label(grasp_yaw, tcp_yaw, period) -> np.ndarray:
     return (np.stack([np.cos(d), np.sin(d)], axis=-1) * (p > 0)[..., None]).astype(np.float32)
 
 
+def wrap(angle: float, period: float) -> float:
+    """`angle` [rad] to its equivalent in [-period/2, period/2): the nearest of the turns a footprint of `period`
+    makes equal."""
+    return float((angle + period / 2) % period - period / 2)
+
+
 def turn_of(label, period: float) -> float:
     """The wrist turn [rad] in (-period/2, period/2] a `turn_label` (cos, sin) says, for a footprint of `period`."""
     c, s = (float(v) for v in np.asarray(label, np.float64).reshape(2))

@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policy.grasp_axis import turn_of, yaw_of
+from policy.grasp_axis import turn_of, wrap, yaw_of
+from sim.rotations import wrap_angle
 
 GRAPH = "turn_locator"
 COLUMNS = slice(6, 8)  # the locator head's grasp-axis slot (policy.goal_locator.TURN_COLUMNS)
@@ -92,7 +93,7 @@ class TurnQuery:
         """The target's turn from the start yaw [rad], wrapped to half a turn either way; None before an answer."""
         if self.target is None:
             return None
-        return float((self.target - self.start + np.pi) % (2 * np.pi) - np.pi)
+        return float(wrap_angle(self.target - self.start))
 
     def ask(self, images: dict, proprio: np.ndarray) -> None:
         """Ask about these frames; a sure answer sets `target` to the newest frame's wrist yaw plus its turn."""
@@ -108,5 +109,4 @@ class TurnQuery:
             # Of the equal grasps the answer names, the one nearest the start yaw: asked again and again as the
             # wrist turns, a locator biased one way would otherwise walk the target round without end.
             P = self.spec.period
-            off = wrist + turn_of(label, P) - self.start
-            self.target = self.start + off - P * round(off / P)
+            self.target = self.start + wrap(wrist + turn_of(label, P) - self.start, P)

@@ -5,8 +5,9 @@ On every verified episode of the family, the locator is asked the command about 
 and half way to the collector's first close, as the runtime asks it on the way to a grasp, and the turn it says
 is compared with the one the collector made from that frame on: its TCP's yaw at the close minus the yaw at the
 frame, wrapped to the footprint's period. The collector turns early, so half way little turn is left; the policy,
-which does not turn, leaves the whole turn to the locator, as at the start (`turn_deg_start_*`). Beside it the error of not turning at all (the policy's own habit,
-policy/EXPERIMENTS.md, "The wrist turn") and how many answers were sure enough to act on (policy.turn_query).
+which does not turn, leaves the whole turn to the locator, as at the start (`turn_deg_start_*`). Beside it the
+error of not turning at all (the policy's own habit, policy/EXPERIMENTS.md, "The wrist turn") and how many answers
+were sure enough to act on (policy.turn_query).
 """
 
 from __future__ import annotations
@@ -15,17 +16,17 @@ import numpy as np
 import torch
 
 from policy.goal_locator import TURN_COLUMNS
-from policy.grasp_axis import turn_of, yaw_of
+from policy.grasp_axis import turn_of, wrap, yaw_of
 from policy.instruction import embed_instructions
 
 
 def recorded_turn(actions: np.ndarray, proprio: np.ndarray, period: float, at: int = 0) -> float | None:
     """The collector's wrist turn [rad] from step `at` to its first close, wrapped to [-period/2, period/2); None
     for an episode that never closes. actions (T, 10), proprio (T, >= 9): the recorded columns."""
-    shut = np.flatnonzero(np.asarray(actions)[:, -1] > 0.5)
-    if not len(shut):
+    close = first_close(actions)
+    if close is None:
         return None
-    return wrap(float(yaw_of(actions[shut[0], 3:9]) - yaw_of(proprio[at, 3:9])), period)
+    return wrap(float(yaw_of(actions[close, 3:9]) - yaw_of(proprio[at, 3:9])), period)
 
 
 def first_close(actions: np.ndarray) -> int | None:
@@ -34,19 +35,14 @@ def first_close(actions: np.ndarray) -> int | None:
     return int(shut[0]) if len(shut) else None
 
 
-def wrap(angle: float, period: float) -> float:
-    """`angle` [rad] to its equivalent in [-period/2, period/2)."""
-    return float((angle + period / 2) % period - period / 2)
-
-
 WAY = (0.0, 0.5)  # how far along the way to the first close the frames asked about are
 
 
 @torch.no_grad()
 def measure_turn(locator, data, family: str, period: float, embedder=None, episodes: int = 150) -> dict:
     """{episodes, answers, turn_deg_median, turn_deg_p75, turn_deg_start_median, turn_deg_start_p75,
-    no_turn_deg_median, sure_share, period_deg} of a turn locator on up to `episodes` verified `family` episodes of `data` (module doc); a ValueError where none has a
-    close late enough to ask before."""
+    no_turn_deg_median, sure_share, period_deg} of a turn locator on up to `episodes` verified `family` episodes of
+    `data` (module doc); a ValueError where none has a close late enough to ask before."""
     from datagen.store import Dataset
     from policy.goal_locator import LocatorGraph
     from policy.turn_query import MIN_NORM

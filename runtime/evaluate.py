@@ -110,8 +110,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
     from runtime.look import Look
-    from runtime.wrist_turn import steer
     from runtime.phases import Sequencer
+    from runtime.wrist_turn import steer
     from sim.twins.rig import SimRig
 
     check_speed(speed)  # before anything is built

@@ -16,18 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 from policy.action_frame import rot6d_of, rotations
-from sim.rotations import rotvec_to_matrix
+from policy.grasp_axis import yaw_of
+from sim.rotations import rotvec_to_matrix, wrap_angle
 
 DEFAULT_RATE = 0.6  # rad/s: the look's and the retreats' turning speed (runtime.retreat.Retreat.turn)
-
-
-def yaw(R: np.ndarray) -> float:
-    """The yaw [rad] of a rotation's x axis (the fingers' closing axis) about the vertical."""
-    return float(np.arctan2(R[1, 0], R[0, 0]))
-
-
-def _wrapped(angle: float) -> float:
-    return float((angle + np.pi) % (2 * np.pi) - np.pi)
 
 
 def hold_yaw(actions: np.ndarray, pose: np.ndarray, target: float, dt: float,
@@ -35,13 +27,13 @@ def hold_yaw(actions: np.ndarray, pose: np.ndarray, target: float, dt: float,
     """(n, 10) actions (position, rot6d, gripper) one every `dt` s, each rot6d turned about the vertical so its
     yaw is `target` [rad], approached from `pose`'s (9,: the TCP now) at no more than `rate` rad/s."""
     out = np.array(actions, np.float32, copy=True)
-    now = yaw(rotations(np.asarray(pose[3:9], np.float64)))
-    gap = _wrapped(target - now)
+    now = float(yaw_of(pose[3:9]))
+    gap = float(wrap_angle(target - now))
     for k in range(len(out)):
         limit = rate * (k + 1) * dt
         want = now + float(np.clip(gap, -limit, limit))
         R = rotations(np.asarray(out[k, 3:9], np.float64))
-        out[k, 3:9] = rot6d_of(rotvec_to_matrix([0.0, 0.0, _wrapped(want - yaw(R))]) @ R)
+        out[k, 3:9] = rot6d_of(rotvec_to_matrix([0.0, 0.0, wrap_angle(want - yaw_of(out[k, 3:9]))]) @ R)
     return out
 
 

@@ -7,11 +7,11 @@ import pytest
 
 from policy.action_frame import rot6d_of, rotations
 from policy.goal_locator import locator_rows
-from policy.grasp_axis import axis_label, turn_label, turn_of
+from policy.grasp_axis import axis_label, turn_label, turn_of, wrap, yaw_of
 from policy.testing import STACK, StillBundle
 from policy.turn_query import TurnQuery, turn_query_spec
-from policy.turn_query_measure import recorded_turn, wrap
-from runtime.wrist_turn import hold_yaw, yaw
+from policy.turn_query_measure import recorded_turn
+from runtime.wrist_turn import hold_yaw
 
 QUARTER, HALF = np.pi / 2, np.pi
 DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # the TCP pointing down, yaw 0
@@ -123,7 +123,7 @@ def test_the_held_yaw_is_reached_at_a_bounded_rate_and_leaves_the_rest():
     out = hold_yaw(chunk, start, target, 0.1)
     np.testing.assert_array_equal(out[:, :3], chunk[:, :3])
     np.testing.assert_array_equal(out[:, 9], chunk[:, 9])
-    yaws = [yaw(rotations(a[3:9].astype(np.float64))) for a in out]
+    yaws = [yaw_of(a[3:9]) for a in out]
     # from 0.3 rad, 0.06 rad a step (0.6 rad/s at 0.1 s), until the target 0.649 is reached (step 6)
     np.testing.assert_allclose(yaws[:3], [0.36, 0.42, 0.48], atol=1e-5)
     np.testing.assert_allclose(yaws[5:], target, atol=1e-5)
@@ -132,7 +132,7 @@ def test_the_held_yaw_is_reached_at_a_bounded_rate_and_leaves_the_rest():
         assert R[2, 2] == pytest.approx(tilted[2, 2], abs=1e-5)
     # the short way round: a target 350 degrees on is 10 degrees back
     back = hold_yaw(chunk, start, 0.3 - np.radians(10.0) + 2 * np.pi, 1.0)
-    assert yaw(rotations(back[0, 3:9].astype(np.float64))) == pytest.approx(0.3 - np.radians(10.0), abs=1e-5)
+    assert yaw_of(back[0, 3:9]) == pytest.approx(0.3 - np.radians(10.0), abs=1e-5)
 
 
 def test_an_episode_asks_before_each_chunk_and_holds_the_turn_on_the_policys_chunks():
@@ -142,7 +142,7 @@ def test_an_episode_asks_before_each_chunk_and_holds_the_turn_on_the_policys_chu
     out = run_policy_episode(b, "pick_place", 100_003, command=STACK, time_limit_factor=0.2, latency_s=0.006)
     assert len(b.turns_asked_at) == len(b.acted_at) > 3  # asked at every chunk: the hand never closes
     assert out.turn_deg == pytest.approx(30.0, abs=0.5)
-    first, last = (yaw(rotations(r.astype(np.float64))) for r in (b.acted_rot[0], b.acted_rot[-1]))
+    first, last = (yaw_of(r) for r in (b.acted_rot[0], b.acted_rot[-1]))
     assert np.degrees(wrap(last - first, 2 * np.pi)) == pytest.approx(30.0, abs=2.0)  # the still policy turned
     unsure = StillBundle(turn_deg=30.0, turn_norm=0.3)
     out = run_policy_episode(unsure, "pick_place", 100_003, command=STACK, time_limit_factor=0.2, latency_s=0.006)
@@ -150,7 +150,7 @@ def test_an_episode_asks_before_each_chunk_and_holds_the_turn_on_the_policys_chu
     plain = StillBundle()
     out = run_policy_episode(plain, "pick_place", 100_003, command=STACK, time_limit_factor=0.2, latency_s=0.006)
     assert out.turn_deg is None
-    first, last = (yaw(rotations(r.astype(np.float64))) for r in (plain.acted_rot[0], plain.acted_rot[-1]))
+    first, last = (yaw_of(r) for r in (plain.acted_rot[0], plain.acted_rot[-1]))
     assert abs(np.degrees(wrap(last - first, 2 * np.pi))) < 1.0
 
 

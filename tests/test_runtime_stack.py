@@ -365,10 +365,10 @@ def test_the_turn_query_turns_the_wrist_of_a_stack_command_at_a_bounded_rate(bun
     is held open (a first grasp cycle ends the turn)."""
     import json
 
-    from policy.action_frame import rotations
     from policy.bundle import sha256_file
+    from policy.grasp_axis import yaw_of
     from policy.testing import constant_turn_locator
-    from runtime.wrist_turn import DEFAULT_RATE, yaw
+    from runtime.wrist_turn import DEFAULT_RATE
     from sim.build import build_episode
 
     instruction = build_episode("stack", SEED, "off", "fast").instruction
@@ -390,7 +390,7 @@ def test_the_turn_query_turns_the_wrist_of_a_stack_command_at_a_bounded_rate(bun
     turns = [e for e in events if e.kind == "policy_turn"]
     assert len(turns) == 1 and turns[0].values["turn_deg"] == pytest.approx(30.0, abs=1e-3), turns
     assert "+30.0 deg" in turns[0].message and reports["policy"]["turn_deg"] == pytest.approx(30.0, abs=0.01)
-    yaws = np.array([[yaw(rotations(a[3:9])) for a in c.actions] for _, c in chunks])
+    yaws = np.array([[yaw_of(a[3:9]) for a in c.actions] for _, c in chunks])
     start = yaws[0, 0] - DEFAULT_RATE * 0.1  # the first action is already one step of the turn along
     rel = np.degrees((yaws - start + np.pi) % (2 * np.pi) - np.pi)
     assert rel[0, -1] == pytest.approx(8 * np.degrees(DEFAULT_RATE * 0.1), abs=0.5)  # 8 steps towards +30

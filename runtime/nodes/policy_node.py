@@ -150,10 +150,10 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime import bus as B
     from runtime.look import Look
-    from runtime.wrist_turn import steer
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
+    from runtime.wrist_turn import steer
     from runtime import messages as m
 
     if not cfg.bundle:
@@ -313,9 +313,10 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             turn, sure = current["turn"], current["turn"].sure
                             a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
-                                report["turn_deg"] = round(float(np.degrees(turn.turn)), 2)
-                                event("policy_turn", "info", f"the wrist turns {np.degrees(turn.turn):+.1f} deg to "
-                                      "grasp square to the object's faces", turn_deg=float(np.degrees(turn.turn)))
+                                deg = float(np.degrees(turn.turn))
+                                report["turn_deg"] = round(deg, 2)
+                                event("policy_turn", "info", f"the wrist turns {deg:+.1f} deg to grasp square to "
+                                      "the object's faces", turn_deg=deg)
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
