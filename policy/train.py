@@ -4,13 +4,15 @@
     torchrun --standalone --nproc_per_node 2 -m policy.train DATA RUN --steps 2000   # DDP (gloo on CPU)
 
 Run directory: config.json, stats.npz (normalization, fixed at the first start), dataset.json (content hash,
-tasks, instructions), metrics.jsonl (step, loss, lr, steps/s), metrics.png, summary.json, checkpoints/
-step_XXXXXXXX.pt (model, EMA, optimizer, scheduler; the last `keep_checkpoints`).
+tasks, instructions), environment.json (the CPU and versions it started on), metrics.jsonl (step, loss, lr,
+steps/s), metrics.png, summary.json, checkpoints/step_XXXXXXXX.pt (model, EMA, optimizer, scheduler; the last
+`keep_checkpoints`).
 
 Reproducibility: every random draw of step k (which samples, their crops and jitter, the diffusion noise
 and timesteps) is a function of (seed, k, rank) only - not of the state of a generator that ran before.
 So a run resumed from its last checkpoint replays exactly what an uninterrupted run would have done
-(tested: same weights within float tolerance), whatever the interruption point and with any worker count.
+(tested: same weights within float tolerance), whatever the interruption point and with any worker count,
+on the machine it started on (another CPU's kernels may round otherwise), which RUN/environment.json records.
 
 DDP: each process loads the dataset, takes its share of every epoch's permutation (rank::world) at
 `batch_size` per process, and averages gradients (NCCL on GPUs, gloo on CPU). Rank 0 alone writes files.
@@ -23,6 +25,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -42,6 +45,7 @@ from policy.model import DiffusionPolicy, count_params
 from policy.normalize import Normalizer
 from policy.plot import plot_metrics
 from policy.validate import Validator
+from runtime.eval_environment import TRAIN_PACKAGES, environment_change
 
 
 def resolve_device(device: str = "auto") -> torch.device:
@@ -240,6 +244,10 @@ def train(data_dir: str | Path, config: str | Path | PolicyConfig | dict = "smal
             if warm is not None:
                 warm_start.write_record(run_dir, warm)
         _truncate_metrics(run_dir / "metrics.jsonl", start)
+        moved = environment_change(run_dir, resuming=ckpt is not None, packages=TRAIN_PACKAGES)
+        if moved:  # a resumed run replays the uninterrupted one only on the machine it started on
+            print(f"warning: {run_dir} started on another machine or packages ({moved}); it goes on, but will not "
+                  "replay an uninterrupted run bit for bit", file=sys.stderr)
 
     batches.start, batches.stop = start, total if stop_at is None else min(total, stop_at)
     loader = DataLoader(ds, batch_sampler=batches, num_workers=cfg.num_workers, pin_memory=dev.type == "cuda",

@@ -5,7 +5,9 @@ inference. A fresh install of newer mujoco or onnxruntime moved drawer_put's epi
 packages moved 77 of step 33's 120 stack episodes (policy/EXPERIMENTS.md, "The same bundle on another machine"):
 numpy's, MuJoCo's and onnxruntime's kernels follow the CPU's vector instructions, and a closed loop through
 contact carries the last bit of a sum into another episode. The rates carry over; the episodes do not. So every
-eval records where it ran, and one resumed elsewhere says so.
+eval records where it ran, and one resumed elsewhere says so. Training too (policy/train.py, with torch's version):
+step 33's s48 recipe run again on data identical to the hash trained a denoiser with another release gain
+(policy/EXPERIMENTS.md, "s48 again on this machine"), so a run records its machine and the bundle carries it.
 """
 
 from __future__ import annotations
@@ -17,10 +19,14 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 
-def library_versions() -> dict[str, str]:
-    """The CPU (`cpu_description`), Python and the packages that compute an episode, by name: version."""
+EVAL_PACKAGES = ("numpy", "mujoco", "onnxruntime")  # what computes an episode
+TRAIN_PACKAGES = ("numpy", "torch")  # what computes a training step
+
+
+def library_versions(packages: tuple[str, ...] = EVAL_PACKAGES) -> dict[str, str]:
+    """The CPU (`cpu_description`), Python and the packages' versions, by name: version."""
     out = {"python": platform.python_version(), "cpu": cpu_description()}
-    for name in ("numpy", "mujoco", "onnxruntime"):
+    for name in packages:
         try:
             out[name] = version(name)
         except PackageNotFoundError:
@@ -28,11 +34,11 @@ def library_versions() -> dict[str, str]:
     return out
 
 
-def environment_change(out: Path, resuming: bool) -> str:
+def environment_change(out: Path, resuming: bool, packages: tuple[str, ...] = EVAL_PACKAGES) -> str:
     """What differs between the machine and packages OUT's results were started on (OUT/environment.json, written
     by the first run into OUT) and these, e.g. "cpu: AMD EPYC (avx2) -> Intel Xeon (avx512f)"; "" when nothing
     does or nothing is resumed."""
-    path, now = out / "environment.json", library_versions()
+    path, now = out / "environment.json", library_versions(packages)
     try:
         before = json.loads(path.read_text()) if resuming else None
     except (OSError, ValueError):

@@ -43,8 +43,9 @@ def bundle(bundle_dir):
     return Bundle.load(bundle_dir)
 
 
-def test_layout_and_manifest(bundle_dir):
+def test_layout_and_manifest(run, bundle_dir):
     m = json.loads((bundle_dir / "manifest.json").read_text())
+    assert m["training"]["machine"] == json.loads((Path(run) / "environment.json").read_text())  # where it trained
     for name in ("manifest.json", "obs_encoder.onnx", "denoiser.onnx", "text_encoder.onnx", "stats.npz",
                  "tokenizer/tokenizer.json", "text_reference.npy"):
         assert (bundle_dir / name).is_file(), name

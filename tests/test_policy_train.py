@@ -74,6 +74,20 @@ def test_resume_replays_an_uninterrupted_run(data_dir, tmp_path):
         train(data_dir, dict(TINY, lr=5e-4), tmp_path / "b", steps=12, **kw)
 
 
+def test_a_run_records_its_machine_and_a_resume_elsewhere_says_so(data_dir, tmp_path, monkeypatch, capsys):
+    from runtime import eval_environment
+
+    kw = dict(embedder=hash_embedder, progress=False, threads=1)
+    train(data_dir, dict(TINY), tmp_path / "r", steps=4, stop_at=2, **kw)
+    started = json.loads((tmp_path / "r" / "environment.json").read_text())
+    assert started["torch"] == torch.__version__ and started["cpu"] == eval_environment.cpu_description()
+    assert "another machine" not in capsys.readouterr().err
+    monkeypatch.setattr(eval_environment, "cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
+    assert train(data_dir, dict(TINY), tmp_path / "r", steps=4, **kw)["finished"]
+    assert f"cpu: {started['cpu']} -> Other CPU (avx512f)" in capsys.readouterr().err
+    assert json.loads((tmp_path / "r" / "environment.json").read_text()) == started  # where it started is kept
+
+
 def test_batches_are_a_function_of_the_step():
     a = StepBatches(50, 8, 0, 0, 1, 0, 0)
     b = StepBatches(50, 8, 0, 0, 1, 0, 0)
