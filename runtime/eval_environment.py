@@ -50,8 +50,9 @@ def environment_change(out: Path, resuming: bool, packages: tuple[str, ...] = EV
 
 
 def cpu_description(cpuinfo: str | None = None) -> str:
-    """The CPU's model and the widest vector instruction set it offers, e.g. "AMD EPYC (avx2)": the kernels
-    numpy, MuJoCo and onnxruntime pick, and so the last bits of their sums, follow it."""
+    """The CPU's model, the widest vector instruction set it offers and its family and model numbers where told,
+    e.g. "AMD EPYC (avx2; family 25 model 1)": the kernels numpy, torch, MuJoCo and onnxruntime pick, and so the
+    last bits of their sums, follow it."""
     if cpuinfo is None:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text()
@@ -62,4 +63,9 @@ def cpu_description(cpuinfo: str | None = None) -> str:
     name = model.group(1).strip() if model else (platform.processor() or platform.machine() or "unknown")
     have = set(flags.group(1).split()) if flags else set()
     widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "asimd") if f in have), None)
-    return f"{name} ({widest})" if widest else name
+    # A cloud VM may name only "AMD EPYC": the family and model tell a Zen 2 host from a Zen 3 one
+    family = re.search(r"^cpu family\s*:\s*(\d+)$", cpuinfo, re.M)
+    number = re.search(r"^model\s*:\s*(\d+)$", cpuinfo, re.M)
+    generation = f"family {family.group(1)} model {number.group(1)}" if family and number else ""
+    detail = "; ".join(x for x in (widest, generation) if x)
+    return f"{name} ({detail})" if detail else name

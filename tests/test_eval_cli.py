@@ -225,6 +225,10 @@ def test_cpu_description_names_the_model_and_the_widest_vector_set():
     assert cpu_description(wide) == "AMD EPYC 7B13 (avx512f)"
     arm = "processor\t: 0\nFeatures\t: fp asimd evtstrm\n"
     assert cpu_description(arm).endswith("(asimd)")
+    masked = "cpu family\t: 25\nmodel\t\t: 1\nmodel name\t: AMD EPYC\nflags\t\t: avx2\n"  # a VM's: no number
+    assert cpu_description(masked) == "AMD EPYC (avx2; family 25 model 1)"
+    zen2 = masked.replace("25", "23").replace(": 1", ": 49")
+    assert cpu_description(zen2) == "AMD EPYC (avx2; family 23 model 49)"
 
 
 def test_a_resumed_eval_says_when_the_machine_or_packages_changed(tmp_path, monkeypatch):
