@@ -135,7 +135,7 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         warm = read_record(run_dir)
         normalizer = Normalizer.load(run_dir / "stats.npz")
         data_info = json.loads((run_dir / "dataset.json").read_text())
-        if (run_dir / "environment.json").exists():  # retrained elsewhere, the recipe gives other weights
+        if (run_dir / "environment.json").exists():  # where it trained: elsewhere the recipe gives other weights
             training["machine"] = json.loads((run_dir / "environment.json").read_text())
         if warm is not None:  # what the warm start had learned, this run knows too (policy.warm_start.learned)
             before = warm.pop("learned", {})

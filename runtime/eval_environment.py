@@ -6,7 +6,7 @@ packages moved 77 of step 33's 120 stack episodes (policy/EXPERIMENTS.md, "The s
 numpy's, MuJoCo's and onnxruntime's kernels follow the CPU's vector instructions, and a closed loop through
 contact carries the last bit of a sum into another episode. The rates carry over; the episodes do not. So every
 eval records where it ran, and one resumed elsewhere says so. Training too (policy/train.py, with torch's version):
-step 33's s48 recipe run again on data identical to the hash trained a denoiser with another release gain
+the s48 recipe trained again on the same data hash gave a denoiser with another release gain and other episodes
 (policy/EXPERIMENTS.md, "s48 again on this machine"), so a run records its machine and the bundle carries it.
 """
 
