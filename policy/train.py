@@ -45,7 +45,7 @@ from policy.model import DiffusionPolicy, count_params
 from policy.normalize import Normalizer
 from policy.plot import plot_metrics
 from policy.validate import Validator
-from runtime.eval_environment import TRAIN_PACKAGES, environment_change
+from runtime.machine_record import TRAIN_PACKAGES, environment_change
 
 
 def resolve_device(device: str = "auto") -> torch.device:

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from policy.grasp_axis import turn_of, wrap, yaw_of
-from sim.rotations import wrap_angle
 
 GRAPH = "turn_locator"
 COLUMNS = slice(6, 8)  # the locator head's grasp-axis slot (policy.goal_locator.TURN_COLUMNS)
@@ -90,10 +89,11 @@ class TurnQuery:
 
     @property
     def turn(self) -> float | None:
-        """The target's turn from the start yaw [rad], wrapped to half a turn either way; None before an answer."""
+        """The target's turn from the start yaw [rad], within half the footprint's period either way (`ask` sets the
+        target so); None before an answer."""
         if self.target is None:
             return None
-        return float(wrap_angle(self.target - self.start))
+        return float(self.target - self.start)
 
     def ask(self, images: dict, proprio: np.ndarray) -> None:
         """Ask about these frames; a sure answer sets `target` to the newest frame's wrist yaw plus its turn."""

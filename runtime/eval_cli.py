@@ -17,7 +17,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from runtime.eval_environment import environment_change, library_versions
+from runtime.machine_record import environment_change, library_versions
 
 EPILOG = """\
 suites (each on seeds OFFSET..OFFSET+N-1; keep OFFSET away from the training seeds):

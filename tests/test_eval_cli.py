@@ -24,7 +24,7 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path, monkeyp
 
     assert summary["versions"]["mujoco"] == mujoco.__version__  # what the figures were measured on
     assert summary["versions"]["onnxruntime"] == onnxruntime.__version__
-    from runtime.eval_environment import cpu_description
+    from runtime.machine_record import cpu_description
 
     assert summary["versions"]["cpu"] == cpu_description()
     md = (tmp_path / "results.md").read_text()
@@ -35,7 +35,7 @@ def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path, monkeyp
     assert main(args) == 0  # resumed: nothing left to run, nothing appended
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 3
     capsys.readouterr()
-    monkeypatch.setattr("runtime.eval_environment.cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
+    monkeypatch.setattr("runtime.machine_record.cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
     assert main([*args, "--episodes", "2"]) == 0  # one more seed, resumed on another machine: it says so
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 6
     assert "was started on another machine or install (cpu: " in capsys.readouterr().err
@@ -217,7 +217,7 @@ def test_eval_cli_realtime_runs_the_policy_through_the_live_stack(untrained_bund
 
 
 def test_cpu_description_names_the_model_and_the_widest_vector_set():
-    from runtime.eval_environment import cpu_description
+    from runtime.machine_record import cpu_description
 
     info = "processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse4_2 avx avx2 fma\n"
     assert cpu_description(info) == "AMD EPYC 7B13 (avx2)"
@@ -232,7 +232,7 @@ def test_cpu_description_names_the_model_and_the_widest_vector_set():
 
 
 def test_a_resumed_eval_says_when_the_machine_or_packages_changed(tmp_path, monkeypatch):
-    from runtime import eval_environment as env
+    from runtime import machine_record as env
 
     assert env.environment_change(tmp_path, resuming=False) == ""  # a fresh run records where it runs
     first = json.loads((tmp_path / "environment.json").read_text())

@@ -75,14 +75,14 @@ def test_resume_replays_an_uninterrupted_run(data_dir, tmp_path):
 
 
 def test_a_run_records_its_machine_and_a_resume_elsewhere_says_so(data_dir, tmp_path, monkeypatch, capsys):
-    from runtime import eval_environment
+    from runtime import machine_record
 
     kw = dict(embedder=hash_embedder, progress=False, threads=1)
     train(data_dir, dict(TINY), tmp_path / "r", steps=4, stop_at=2, **kw)
     started = json.loads((tmp_path / "r" / "environment.json").read_text())
-    assert started["torch"] == torch.__version__ and started["cpu"] == eval_environment.cpu_description()
+    assert started["torch"] == torch.__version__ and started["cpu"] == machine_record.cpu_description()
     assert "another machine" not in capsys.readouterr().err
-    monkeypatch.setattr(eval_environment, "cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
+    monkeypatch.setattr(machine_record, "cpu_description", lambda cpuinfo=None: "Other CPU (avx512f)")
     assert train(data_dir, dict(TINY), tmp_path / "r", steps=4, **kw)["finished"]
     assert f"cpu: {started['cpu']} -> Other CPU (avx512f)" in capsys.readouterr().err
     assert json.loads((tmp_path / "r" / "environment.json").read_text()) == started  # where it started is kept

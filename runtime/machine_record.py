@@ -1,4 +1,4 @@
-"""What an evaluation's episodes depend on besides the bundle and the seeds: the machine and the packages.
+"""Where a run ran: the machine and the packages an evaluation's episodes and a training's weights depend on.
 
 Why: `sudd eval` with a fixed latency replays the same seeds to the tick, but only on the same physics and
 inference. A fresh install of newer mujoco or onnxruntime moved drawer_put's episodes; a new machine with the same
