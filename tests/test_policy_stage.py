@@ -19,6 +19,14 @@ def test_a_hold_counts_once_it_is_let_go():
     assert _feed(seq) == [0, 0, 0, 0, 0, 1, 1]
 
 
+def test_a_let_go_counts_once_the_fingers_open_not_while_they_still_hold():
+    # a wide object (held at 0.49) under the 0.5 level the channel passes through on its way down: still held
+    wide = [(1, 0.3), (1, 0.49), (0.5, 0.49), (0.5, 0.47), (0.5, 0.43), (0.0, 0.2), (0.0, 0.0)]
+    assert _feed(wide) == [0, 0, 0, 0, 1, 1, 1]
+    # and a close again before the fingers opened is the same hold
+    assert _feed([(1, 0.49), (0.5, 0.49), (1, 0.49), (0, 0.1)]) == [0, 0, 0, 1]
+
+
 def test_a_missed_grasp_and_the_half_open_pre_shape_do_not_count():
     air = [(1, 0.6), (1, 0.99), (0, 0.4), (0, 0.0)]  # closed on nothing, reopened to retry
     pre_shape = [(0.5, 0.3), (0.5, 0.5), (0.0, 0.1)]  # the handle's half-open approach
