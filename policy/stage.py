@@ -10,7 +10,7 @@ A cycle is a hold followed by a release: the gripper is commanded closed (target
 short of closing fully (measured closure < AIR: they were stopped by something; closing on nothing reaches
 ~1 and is a missed grasp, which the collector retries without moving on), and the command opens again (the
 collector's half-open pre-shape for the handle, 0.5, is not a close) below RELEASED, and the fingers then measure at
-least OPENED more open than the most they held. Why the fingers too: the gripper channel (runtime.controller.gripper)
+least OPENED more open than the most they held, or close again on nothing. Why the fingers too: the gripper channel (runtime.controller.gripper)
 passes through the 0.5 level on its way down, and an object about as wide as that level is still held there;
 counted as let go, drawer_stow's policy lost the place point given in that cycle, closed again on the object it still
 held and carried it onto the drawer's front wall (4 of step 34's 11 drawer_stow failures on seeds 100500-100539;
@@ -34,7 +34,7 @@ import numpy as np
 
 CLOSED = 0.75  # gripper command at or above this: closing (the collector's levels: 0 open, 0.5 pre-shape, 1 closed)
 RELEASED = 0.6  # and below this, after a close: let go (above the 0.5 pre-shape; the hysteresis band's bottom)
-OPENED = 0.05  # and the fingers measured this much more open than they held: the object is let go
+OPENED = 0.03  # and the fingers measured this much more open than they held: the object is let go
 AIR = 0.97     # measured closure at or above this: closed on nothing (the 2F-85's fully closed fingers)
 GRIPPER_COLUMN = 9  # datagen.schema: the gripper's column in proprio (measured closure) and action (command)
 
@@ -46,6 +46,7 @@ class GraspCycles:
         self.count = 0
         self._closing = False  # commanded closed since the last release
         self._peak = 0.0       # the most closed the fingers got meanwhile
+        self._letting_go = False  # asked open after a hold, the fingers not yet measured open
 
     def update(self, command: float, closure: float) -> int:
         """Feed the gripper's position request and measured closure (both 0 open .. 1 closed) at one step;
@@ -55,12 +56,17 @@ class GraspCycles:
             raise ValueError(f"gripper command and closure must be finite numbers in [0, 1], got {command!r}, "
                              f"{closure!r}")
         if cmd >= CLOSED:
+            if self._letting_go and c >= AIR:  # closed again on nothing: what it held was let go meanwhile
+                self.count += 1
+                self._letting_go, self._peak = False, 0.0
             self._closing = True
             self._peak = max(self._peak, c)
         elif self._closing and cmd < RELEASED:
             if self._peak >= AIR or c <= self._peak - OPENED:
                 self.count += self._peak < AIR
-                self._closing, self._peak = False, 0.0
+                self._closing, self._peak, self._letting_go = False, 0.0, False
+            else:
+                self._letting_go = True  # asked open, the fingers still where they held
         return self.count
 
     def reset(self) -> None:
