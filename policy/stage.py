@@ -6,24 +6,24 @@ its head pointed at the handle again (policy/EXPERIMENTS.md, "drawer_put: the he
 How many times the gripper has closed on something and let it go since the command started is measured
 alike on the real gripper and in sim, and costs no perception.
 
-A cycle is a hold followed by a release: the gripper is commanded closed (target >= CLOSED), the fingers stop
-short of closing fully (measured closure < AIR: they were stopped by something; closing on nothing reaches
-~1 and is a missed grasp, which the collector retries without moving on), and the command opens again (the
-collector's half-open pre-shape for the handle, 0.5, is not a close) below RELEASED, and the fingers then measure at
-least OPENED more open than the most they held, or close again on nothing. Why the fingers too: the gripper channel (runtime.controller.gripper)
-passes through the 0.5 level on its way down, and an object about as wide as that level is still held there;
-counted as let go, drawer_stow's policy lost the place point given in that cycle, closed again on the object it still
-held and carried it onto the drawer's front wall (4 of step 34's 11 drawer_stow failures on seeds 100500-100539;
-policy/EXPERIMENTS.md, "Let go means the fingers opened"). The band between RELEASED and CLOSED changes nothing: a policy's gripper channel is continuous, and one that lets go slowly hovers at CLOSED
-for a tick or two (0.75, 0.75, 0.66 in successive chunks), which without the band counted two cycles for one
-release and sent drawer_put to its closing phase with nothing stowed (3 of 40 fresh episodes of step 29;
-policy/EXPERIMENTS.md, "drawer_put's phase switches"). The collector's commands cross the band once, so its
-counts are the same with or without it. On the 391 verified collector drawer_put
-episodes of out/data_ft: 0 cycles while opening the drawer, 1 while taking the object to it, 2 while closing
-it, in 338 (86 %); the rest also count a re-grasp of a slipping handle or object. Both inputs are what a
-2F-85 reports (its position request and position), in sim and on the robot. The count at an observation is
-the cycles completed up to and including its newest step; the policy reads it as a one-hot of `bins`
-classes, the last one meaning "bins - 1 or more".
+A cycle is a hold followed by a release: the gripper is commanded closed (target >= CLOSED), the fingers stop short
+of closing fully (measured closure < AIR: they were stopped by something; closing on nothing reaches ~1 and is a
+missed grasp, which the collector retries without moving on), and the command opens again (the collector's half-open
+pre-shape for the handle, 0.5, is not a close) below RELEASED, and the fingers then measure at least OPENED more
+open than the most they held, or close again on nothing. Why the fingers too: the gripper channel
+(runtime.controller.gripper) passes through the 0.5 level on its way down, and an object about as wide as that level
+is still held there; counted as let go, drawer_stow's policy lost the place point given in that cycle, closed again
+on the object it still held and carried it onto the drawer's front wall (4 of step 34's 11 drawer_stow failures on
+seeds 100500-100539; policy/EXPERIMENTS.md, "Let go means the fingers opened"). The band between RELEASED and CLOSED
+changes nothing: a policy's gripper channel is continuous, and one that lets go slowly hovers at CLOSED for a tick
+or two (0.75, 0.75, 0.66 in successive chunks), which without the band counted two cycles for one release and sent
+drawer_put to its closing phase with nothing stowed (3 of 40 fresh episodes of step 29; policy/EXPERIMENTS.md,
+"drawer_put's phase switches"). The collector's commands cross the band once, so its counts are the same with or
+without it. On the 391 verified collector drawer_put episodes of out/data_ft: 0 cycles while opening the drawer, 1
+while taking the object to it, 2 while closing it, in 338 (86 %); the rest also count a re-grasp of a slipping
+handle or object. Both inputs are what a 2F-85 reports (its position request and position), in sim and on the robot.
+The count at an observation is the cycles completed up to and including its newest step; the policy reads it as a
+one-hot of `bins` classes, the last one meaning "bins - 1 or more".
 
 Torch-free (numpy only): the runtime's policy node and the evaluation count the same way as the training data.
 """
@@ -34,7 +34,7 @@ import numpy as np
 
 CLOSED = 0.75  # gripper command at or above this: closing (the collector's levels: 0 open, 0.5 pre-shape, 1 closed)
 RELEASED = 0.6  # and below this, after a close: let go (above the 0.5 pre-shape; the hysteresis band's bottom)
-OPENED = 0.03  # and the fingers measured this much more open than they held: the object is let go
+OPENED = 0.05  # and the fingers measured this much more open than they held (0.03 took a slip at 0.5 for a let-go)
 AIR = 0.97     # measured closure at or above this: closed on nothing (the 2F-85's fully closed fingers)
 GRIPPER_COLUMN = 9  # datagen.schema: the gripper's column in proprio (measured closure) and action (command)
 
