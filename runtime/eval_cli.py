@@ -82,6 +82,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "or object query (policy/object_query.py) would replace them: to measure what the queries "
                          "buy on the same seeds")
     ev.add_argument("--phases", action=argparse.BooleanOptionalAction, default=None, help=phases.HELP)
+    ev.add_argument("--no-served-pause", action="store_true",
+                    help="play every chunk with its leading pause, even where the arm has already held still "
+                         "longer than any pause of the collector's (runtime/served_pause.py): to measure what "
+                         "playing a chunk from where it moves buys on the same seeds")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -157,6 +161,7 @@ def _eval(args) -> int:
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
+                "served_pause": not args.no_served_pause,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "controller": asdict(controller)}
@@ -317,7 +322,7 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
                                  speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
-                                 phases=phases).record()
+                                 phases=phases, served_pause=s.get("served_pause", True)).record()
         if strip is not None and not out["success"]:
             title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
                      f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")

@@ -72,6 +72,7 @@ class EpisodeOutcome:
     drawer_end: float | None = None  # and at the end
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
+    pauses_served: int = 0  # chunks played from where they move, the arm having held their pause (served_pause)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
@@ -92,7 +93,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        command: str | None = None, paraphrase: bool = False, replan_every: int = 1,
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
-                       goal_query: bool = True, phases: list | None = None) -> EpisodeOutcome:
+                       goal_query: bool = True, phases: list | None = None,
+                       served_pause: bool = True) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
@@ -101,7 +103,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     observations still 1 / control_hz); `goal_query` False: the head's own release point, where the bundle's
     goal query would replace it (policy.goal_query), or the object query a long task's later points
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
-    phase and its text and pace chosen by the grasp cycles so far (`speed` then unused)."""
+    phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `served_pause` False:
+    every chunk played with its leading pause (runtime/served_pause.py)."""
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
@@ -111,6 +114,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from runtime.eval_progress import GraspProgress
     from runtime.look import Look
     from runtime.phases import Sequencer
+    from runtime.served_pause import ServedPause
     from runtime.wrist_turn import steer
     from sim.twins.rig import SimRig
 
@@ -126,6 +130,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     objects = ObjectQuery(bundle, text, task, enabled=goal_query)
     look = Look(query)
     turn = TurnQuery(bundle, text, task, enabled=goal_query)
+    pause = ServedPause(enabled=served_pause)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -184,6 +189,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                         proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                     if actions is None:  # the policy's turn (not a phase's retreat to the start)
                         actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
+                        actions = pause.chunk(actions, proprio[-1], rig.world.gripper_command(), t_obs * 1e-9,
+                                              speed=1e9 / (dt_ns * control_hz))
                         actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
                                         dt_ns * 1e-9)
                 lag = time.perf_counter() - t0
@@ -203,6 +210,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
         out.grasp_cycles = cycles.count
+        out.pauses_served = pause.trimmed
         if sequencer is not None:
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:

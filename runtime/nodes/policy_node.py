@@ -71,6 +71,9 @@ class PolicyNodeConfig:
     # object, close the drawer), switched by the grasp cycles, each at its family's pace. None: the families the
     # bundle's manifest lists (policy.phased); true: every family with phases; false: none.
     phases: bool | None = None
+    # Play a chunk from where it moves once the arm has held still longer than any pause of the collector's
+    # (runtime/served_pause.py); false: every chunk with its leading pause, to measure what this buys.
+    served_pause: bool = True
 
 
 CONFIG = PolicyNodeConfig
@@ -153,6 +156,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
+    from runtime.served_pause import ServedPause
     from runtime.wrist_turn import steer
     from runtime import messages as m
 
@@ -204,7 +208,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         if cfg.command:
             commands.append(("initial", cfg.command))
         current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None, "look": None,
-                         "turn": None}
+                         "turn": None, "pause": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -231,6 +235,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
                     current["look"] = Look(current["query"])
                     current["turn"] = TurnQuery(bundle, text, task, enabled=cfg.goal_query)
+                    current["pause"] = ServedPause(enabled=cfg.served_pause)
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -310,6 +315,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                         if a is None:  # the policy's turn (not a phase's retreat to the start)
                             a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
+                            a = current["pause"].chunk(a, prop[-1], request, t_obs * 1e-9,
+                                                       speed=1e9 / (dt_ns * data_hz))
                             turn, sure = current["turn"], current["turn"].sure
                             a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
