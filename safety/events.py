@@ -46,6 +46,8 @@ KINDS = {
     "gripper_force": (INFO, "gripper force clamped to its limit (N)"),
     "gripper_open_held": (WARNING, "gripper opening held: the fingers would open into a keep-out box here "
                                    "(closure wanted / now)"),
+    "gripper_open_partial": (WARNING, "gripper opened only as far as the keep-out boxes allow here, the rest once "
+                                      "the arm moves clear (closure now / wanted)"),
 }
 
 

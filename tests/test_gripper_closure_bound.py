@@ -75,6 +75,36 @@ def test_an_open_takes_the_bound_down_at_once_and_is_held_near_a_box():
     assert _feed(channel, rig, 1.0, 0.1)[-1, 0] == 0.0  # a close again: no report yet, still open
 
 
+def test_held_back_by_a_box_the_fingers_open_as_far_as_it_allows_and_the_rest_once_clear():
+    rig = _rig()
+    allowed = {"from": 0.3}  # the boxes allow closures from this one up
+    channel = GripperChannel(rig.gripper, LIMITS, CFG, may_open=lambda closure: closure >= allowed["from"] - 1e-9)
+    events = EventCoalescer(0.1)
+    _feed(channel, rig, 0.0, 0.3)
+    _feed(channel, rig, 0.5, 2.0)
+    part = _feed(channel, rig, 0.0, 1.0, events)  # the policy asks the fingers open
+    assert part[0, 0] == pytest.approx(0.3) and rig.gripper.state().target == pytest.approx(0.3, abs=0.01)
+    assert part[-1, 1] == pytest.approx(0.3, abs=0.05)  # they open that far, which lets go of what they held
+    reported = [e for e in events.flush(10.0) if e.kind == "gripper_open_partial"]
+    assert reported and "keep-out boxes" in reported[0].message
+    allowed["from"] = 0.0  # the arm has moved clear
+    rest = _feed(channel, rig, 0.0, 0.5)
+    assert rest[0, 0] == 0.0 and rig.gripper.state().target == 0.0  # the rest of the way, at once
+    assert channel.commands == 4  # the open, the half, the part and the rest: no command repeated
+
+
+def test_a_partial_opening_that_would_not_let_go_is_held():
+    rig = _rig()
+    channel = GripperChannel(rig.gripper, LIMITS, CFG, may_open=lambda closure: closure >= 0.45)
+    events = EventCoalescer(0.1)
+    _feed(channel, rig, 0.0, 0.3)
+    _feed(channel, rig, 0.5, 2.0)
+    half = channel.closure_bound
+    held = _feed(channel, rig, 0.0, 0.5, events)  # 0.45 is within LET_GO of the half-open bound
+    assert (held[:, 0] == half).all() and rig.gripper.state().target == pytest.approx(0.5, abs=0.01)
+    assert {e.kind for e in events.flush(10.0)} == {"gripper_open_held"}
+
+
 def test_the_controller_hands_the_bound_to_its_filter():
     from sim.rotations import rotvec_to_matrix
 

@@ -20,7 +20,12 @@ The channel also keeps the least closure the fingers can have until its next com
 the safety filter places its finger points for (safety.filter.set_finger_closure): a half-open pre-shape then
 reaches under a cabinet's top to its handle, where the points of open fingers would reach into the top's
 keep-out box. An opening command takes the bound down at once, and is held while the fingers' points at the
-new opening would reach into a keep-out box where the arm is (`may_open`, the filter's check). A closing
+new opening would reach into a keep-out box where the arm is (`may_open`, the filter's check). Held back so, the
+fingers open as far as the box allows where that lets go of what they hold (at least `LET_GO` more open than the
+bound), and the rest of the way once the arm has moved clear. Why: an object about as wide as the half-open level
+stays in fingers held there, and inside a drawer, where open fingers would reach into its walls' boxes, the policy
+asked them open for 30 s with the object still in the hand (drawer_put seed 100527, drawer_stow 100532;
+policy/EXPERIMENTS.md, "A pause already held"). A closing
 command raises it only as the gripper reports its fingers closed (asked every `CHECK_PERIOD_S` from
 `SETTLE_S` after the command until they stop): fingers that close on an object stop at its width.
 
@@ -40,6 +45,8 @@ FORCE_RANGE = (20.0, 235.0)  # N at normalised force 0 and 1
 CHECK_PERIOD_S = 0.1  # how often an unverified close asks the gripper what it holds
 SETTLE_S = 0.2  # after a close edge, the fingers have not started to move yet: no verdict before this
 EMPTY_CLOSED = 0.9  # finger closure (0 open .. 1 closed) beyond which a stopped gripper holds nothing
+PARTIAL_STEP = 0.05  # the closures tried for an opening a keep-out box holds back, most open first
+LET_GO = 0.1  # a partial opening at least this much more open than the bound lets go of what the fingers hold
 
 
 def _norm(x: float, lo: float, hi: float) -> float:
@@ -66,6 +73,7 @@ class GripperChannel:
         self._verified = False  # the standing close holds an object (no need to ask again)
         self._next_check = 0.0
         self._reopened_until: float | None = None  # the policy's close is ignored until then
+        self._short_of: tuple | None = None  # (closure, command) of an opening sent only in part: the rest wanted
 
     def update(self, value: float | None, now: float, allowed: bool, events) -> bool | None:
         """Feed the channel's value at this cycle; returns True/False (closed/open) when a command was sent."""
@@ -88,6 +96,8 @@ class GripperChannel:
                 events.report("gripper_empty_grasp", now, message="the fingers closed on nothing: reopened, "
                               f"the policy's close ignored for up to {cfg.reopen_hold:g} s")
         want = self._level_for(value)
+        if want is not None and want == self.level and self._short_of is not None:
+            return self._open_the_rest()
         if want is None or want == self.level:
             return None
         if self.level is not None and now - self._edge_at < cfg.gripper_min_hold:
@@ -97,18 +107,27 @@ class GripperChannel:
         if cmd is None:
             return None
         position = 1.0 - min(1.0, cmd.opening / STROKE_M)
+        short_of = None
         if position < self.closure_bound and self.may_open is not None and not self.may_open(position):
+            part = self._widest_allowed(position)
+            if part is None:
+                if events is not None:
+                    events.report("gripper_open_held", now, value=position, limit=self.closure_bound,
+                                  message="the fingers would open into a keep-out box here: held until the arm "
+                                          "moves clear (closure wanted / now)")
+                return None
             if events is not None:
-                events.report("gripper_open_held", now, value=position, limit=self.closure_bound,
-                              message="the fingers would open into a keep-out box here: held until the arm "
-                                      "moves clear (closure wanted / now)")
-            return None
+                events.report("gripper_open_partial", now, value=part, limit=position,
+                              message="the fingers opened only as far as the keep-out boxes allow here, the rest "
+                                      "once the arm moves clear (closure now / wanted)")
+            short_of, position = (position, cmd), part
         ok = self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE), wait=False)
         if ok:
             if self.level is not None:  # the first command only sets the state: no hold after it
                 self._edge_at = now
             self.level = want
             self.commands += 1
+            self._short_of = short_of
             self._verified = False
             self._next_check = now + SETTLE_S  # no verdict before the fingers move
             if position <= self.closure_bound:
@@ -118,6 +137,29 @@ class GripperChannel:
                 self._next_bound_check = self._next_check
             return self.closed
         return None
+
+    def _widest_allowed(self, position: float) -> float | None:
+        """The most open closure short of `position` the keep-out boxes allow here, where it lets go of what the
+        fingers hold (LET_GO more open than the bound); None where none does."""
+        c = position + PARTIAL_STEP
+        while c <= self.closure_bound - LET_GO + 1e-9:
+            if self.may_open(c):
+                return c
+            c += PARTIAL_STEP
+        return None
+
+    def _open_the_rest(self) -> bool | None:
+        """The rest of an opening sent only in part, once the keep-out boxes allow it."""
+        position, cmd = self._short_of
+        if not self.may_open(position):
+            return None
+        if not self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE),
+                                 wait=False):
+            return None
+        self._short_of = None
+        self.closure_bound = min(self.closure_bound, position)
+        self.commands += 1
+        return self.closed
 
     def _track_closure(self, now: float) -> None:
         """Raise the closure bound as a close's fingers are reported closing: from a report taken after the
