@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-GRIPPER = 9  # the gripper's column in proprio (measured closure) and action (request): datagen.schema
+from policy.stage import GRIPPER_COLUMN as GRIPPER
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,3 @@ class ServedPause:
         self.trimmed += 1
         self.dropped += lead
         return np.concatenate([actions[lead:], np.repeat(actions[-1:], lead, axis=0)])
-
-    def reset(self) -> None:
-        self._anchor, self._since = None, 0.0
