@@ -35,6 +35,7 @@ examples:
   sudd eval --policy out/bundle --task pick_place --episodes 30 --suite heldout --holdout-color purple
   sudd eval --policy out/bundle --task pick_place --episodes 60 --latency-ms 6 --no-collector  # repeatable
   sudd eval --policy out/bundle --task pick_place --episodes 20 --filmstrips  # see each failure, frame by frame
+  sudd eval --policy out/bundle --task drawer_put --seeds 100510 --latency-ms 6 --traces  # and tick by tick
   sudd eval --policy out/bundle --task drawer_open --episodes 10 --realtime --no-collector  # as deployed, live
 """
 
@@ -90,6 +91,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
                          "with or without)")
+    ev.add_argument("--traces", action="store_true",
+                    help="write OUT/traces/SUITE_TASK_SEED.csv for every failed policy episode: at every policy "
+                         "tick the TCP, the fingers, the drawer, the named object, the chunk's first and last "
+                         "targets and the controller's events (runtime/eval_trace.py), to read how it failed")
     ev.add_argument("--controller", type=Path, metavar="FILE.toml",
                     help="chunk controller settings (as sudd run --controller): a TOML file of "
                          "runtime/controller/config.py's fields; recorded in summary.json")
@@ -119,9 +124,9 @@ def _eval(args) -> int:
     check_speed_spec(args.speed)
     seeds = list(resolve_seeds(args.seeds, args.episodes, args.seed_offset, default_episodes=20,
                                default_offset=100_000))
-    if args.realtime and (args.latency_ms is not None or args.filmstrips):
-        raise ValueError("--realtime: the lag is the stack's own and there are no filmstrips of it; leave out "
-                         "--latency-ms and --filmstrips (they are for the lockstep eval)")
+    if args.realtime and (args.latency_ms is not None or args.filmstrips or args.traces):
+        raise ValueError("--realtime: the lag is the stack's own and there are no filmstrips or traces of it; leave "
+                         "out --latency-ms, --filmstrips and --traces (they are for the lockstep eval)")
     bundle = Bundle.load(args.policy, intra_op_num_threads=1)
     pace = resolve_pace(bundle.manifest, args.speed)
     phased = resolve_phased(bundle.phased, args.phases)
@@ -164,6 +169,7 @@ def _eval(args) -> int:
                 "served_pause": not args.no_served_pause,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
+                "traces": str(args.out / "traces") if args.traces else None,
                 "controller": asdict(controller)}
     from tqdm import tqdm
 
@@ -226,6 +232,8 @@ def _eval(args) -> int:
         print(f"\n{len(records)} episodes; table {args.out / 'results.md'}, chart {png}, per episode {results_path}")
         if args.filmstrips:
             print(f"failed policy episodes, frame by frame: {args.out / 'filmstrips'}")
+        if args.traces:
+            print(f"failed policy episodes, tick by tick: {args.out / 'traces'}")
     return 0
 
 
@@ -306,11 +314,14 @@ def _job(job: dict) -> dict:
 
 def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
+    from policy.stage import GRIPPER_COLUMN
     from runtime.eval_filmstrip import Filmstrip
+    from runtime.eval_trace import Trace
     from runtime.evaluate import run_policy_episode
     from runtime.phases import phases_for
 
     strip = Filmstrip() if s["filmstrips"] else None
+    trace = Trace(GRIPPER_COLUMN) if s.get("traces") else None
     pace = Pace(s.get("pace", {}))
     bundle = _WORKER["bundle"]
     phases = (phases_for(job["task"], pace, bundle.instructions, bundle.tasks) if job["task"] in s.get("phases", ())
@@ -322,11 +333,14 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
                                  speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
-                                 phases=phases, served_pause=s.get("served_pause", True)).record()
+                                 phases=phases, served_pause=s.get("served_pause", True), trace=trace).record()
+        name = f"{job['suite']}_{job['task']}_{job['seed']}"
+        if trace is not None and not out["success"]:
+            out["trace"] = str(trace.save(Path(s["traces"]) / f"{name}.csv"))
         if strip is not None and not out["success"]:
             title = (f"{job['suite']} {job['task']} seed {job['seed']}: \"{out['command']}\" -> {out['end']}, "
                      f"{out['failure']}, held {', '.join(out['held']) or 'nothing'}")
-            path = Path(s["filmstrips"]) / f"{job['suite']}_{job['task']}_{job['seed']}.png"
+            path = Path(s["filmstrips"]) / f"{name}.png"
             out["filmstrip"] = str(strip.save(path, title))
     finally:
         if strip is not None:

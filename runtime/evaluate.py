@@ -94,7 +94,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
-                       served_pause: bool = True) -> EpisodeOutcome:
+                       served_pause: bool = True, trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
@@ -104,7 +104,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     goal query would replace it (policy.goal_query), or the object query a long task's later points
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `served_pause` False:
-    every chunk played with its leading pause (runtime/served_pause.py)."""
+    every chunk played with its leading pause (runtime/served_pause.py); `trace` a runtime.eval_trace.Trace to
+    record every tick, chunk and event in."""
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
@@ -155,8 +156,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         tick = 0
         while rig.world.time < budget:
             progress(rig.world, inst)
-            if observer is not None:
-                observer(rig.world, inst)
+            for watch in (observer, trace):
+                if watch is not None:
+                    watch(rig.world, inst)
             if ep.success():
                 out.success, out.end = True, "success"
                 break
@@ -204,9 +206,13 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                     progress.plan(rig.world.time + (times - rig.now_ns()) * 1e-9, actions[:, :3])
                 out.chunks += 1
                 out.rejected_chunks += not ok
+                if trace is not None:
+                    trace.chunk(actions, ok)
             _run(loop, rig, per_tick - lag_cycles, rec)
-            for e in loop.drain_events():
-                events[e.kind] += 1
+            kinds = [e.kind for e in loop.drain_events()]
+            events.update(kinds)
+            if trace is not None:
+                trace.events(kinds)
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
         out.grasp_cycles = cycles.count
