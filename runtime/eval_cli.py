@@ -87,6 +87,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="play every chunk with its leading pause, even where the arm has already held still "
                          "longer than any pause of the collector's (runtime/served_pause.py): to measure what "
                          "playing a chunk from where it moves buys on the same seeds")
+    ev.add_argument("--no-finger-wait", action="store_true",
+                    help="let the arm follow the chunks while the fingers are still closing or opening, instead of "
+                         "holding it until they stop (runtime/finger_wait.py): to measure what the wait buys on "
+                         "the same seeds")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -166,7 +170,7 @@ def _eval(args) -> int:
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
-                "served_pause": not args.no_served_pause,
+                "served_pause": not args.no_served_pause, "finger_wait": not args.no_finger_wait,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "traces": str(args.out / "traces") if args.traces else None,
@@ -333,7 +337,8 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
                                  speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
-                                 phases=phases, served_pause=s.get("served_pause", True), trace=trace).record()
+                                 phases=phases, served_pause=s.get("served_pause", True),
+                                 finger_wait=s.get("finger_wait", True), trace=trace).record()
         name = f"{job['suite']}_{job['task']}_{job['seed']}"
         if trace is not None and not out["success"]:
             out["trace"] = str(trace.save(Path(s["traces"]) / f"{name}.csv"))

@@ -73,6 +73,7 @@ class EpisodeOutcome:
     grasp_cycles: int = 0  # holds let go by the end, as the policy was told them (policy.stage)
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
     pauses_served: int = 0  # chunks played from where they move, the arm having held their pause (served_pause)
+    finger_waits: int = 0  # chunks replaced by a hold while the fingers still closed or opened (finger_wait)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
@@ -94,7 +95,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
-                       served_pause: bool = True, trace=None) -> EpisodeOutcome:
+                       served_pause: bool = True, finger_wait: bool = True, trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
@@ -104,7 +105,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     goal query would replace it (policy.goal_query), or the object query a long task's later points
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `served_pause` False:
-    every chunk played with its leading pause (runtime/served_pause.py); `trace` a runtime.eval_trace.Trace to
+    every chunk played with its leading pause (runtime/served_pause.py); `finger_wait` False: the arm follows
+    the chunks while the fingers still close or open (runtime/finger_wait.py); `trace` a runtime.eval_trace.Trace to
     record every tick, chunk and event in."""
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
@@ -113,6 +115,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
+    from runtime.finger_wait import FingerWait
     from runtime.look import Look
     from runtime.phases import Sequencer
     from runtime.served_pause import ServedPause
@@ -132,6 +135,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     look = Look(query)
     turn = TurnQuery(bundle, text, task, enabled=goal_query)
     pause = ServedPause(enabled=served_pause)
+    wait = FingerWait(enabled=finger_wait)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -195,6 +199,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                                               speed=1e9 / (dt_ns * control_hz))
                         actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
                                         dt_ns * 1e-9)
+                        actions = wait.chunk(actions, proprio[-1], t_obs * 1e-9)
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s
@@ -217,6 +222,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.sim_seconds = round(float(rig.world.time), 3)
         out.grasp_cycles = cycles.count
         out.pauses_served = pause.trimmed
+        out.finger_waits = wait.held
         if sequencer is not None:
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:

@@ -74,6 +74,9 @@ class PolicyNodeConfig:
     # Play a chunk from where it moves once the arm has held still longer than any pause of the collector's
     # (runtime/served_pause.py); false: every chunk with its leading pause, to measure what this buys.
     served_pause: bool = True
+    # Hold the arm where it is while the fingers still close or open as the chunk asks (runtime/finger_wait.py):
+    # the collector's fingers shut in 0.1 s, the gripper's take 0.65 s; false: follow the chunks regardless.
+    finger_wait: bool = True
 
 
 CONFIG = PolicyNodeConfig
@@ -156,6 +159,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
+    from runtime.finger_wait import FingerWait
     from runtime.served_pause import ServedPause
     from runtime.wrist_turn import steer
     from runtime import messages as m
@@ -208,7 +212,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         if cfg.command:
             commands.append(("initial", cfg.command))
         current: dict = {"text": None, "emb": None, "query": None, "objects": None, "phases": None, "look": None,
-                         "turn": None, "pause": None}
+                         "turn": None, "pause": None, "wait": None}
         cycles = GraspCycles()
         stale_state = None
         ctx.ready({"bundle": str(cfg.bundle), "cameras": bundle.cameras, "hz": hz / cfg.replan_every,
@@ -236,6 +240,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current["look"] = Look(current["query"])
                     current["turn"] = TurnQuery(bundle, text, task, enabled=cfg.goal_query)
                     current["pause"] = ServedPause(enabled=cfg.served_pause)
+                    current["wait"] = FingerWait(enabled=cfg.finger_wait)
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -319,6 +324,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                        speed=1e9 / (dt_ns * data_hz))
                             turn, sure = current["turn"], current["turn"].sure
                             a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
+                            a = current["wait"].chunk(a, prop[-1], t_obs * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
                                 deg = float(np.degrees(turn.turn))
                                 report["turn_deg"] = round(deg, 2)
