@@ -318,14 +318,13 @@ def _job(job: dict) -> dict:
 
 def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
-    from policy.stage import GRIPPER_COLUMN
     from runtime.eval_filmstrip import Filmstrip
     from runtime.eval_trace import Trace
     from runtime.evaluate import run_policy_episode
     from runtime.phases import phases_for
 
     strip = Filmstrip() if s["filmstrips"] else None
-    trace = Trace(GRIPPER_COLUMN) if s.get("traces") else None
+    trace = Trace() if s.get("traces") else None
     pace = Pace(s.get("pace", {}))
     bundle = _WORKER["bundle"]
     phases = (phases_for(job["task"], pace, bundle.instructions, bundle.tasks) if job["task"] in s.get("phases", ())

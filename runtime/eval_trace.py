@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from policy.stage import GRIPPER_COLUMN
+
 COLUMNS = ("t", "tcp_x", "tcp_y", "tcp_z", "tcp_yaw_deg", "grip_cmd", "closure", "drawer",
            "target_x", "target_y", "target_z", "holds_target",
            "aim_x", "aim_y", "aim_z", "aim_grip", "end_x", "end_y", "end_z", "end_grip", "chunk", "events")
@@ -26,10 +28,9 @@ COLUMNS = ("t", "tcp_x", "tcp_y", "tcp_z", "tcp_yaw_deg", "grip_cmd", "closure",
 class Trace:
     """Call it with (world, instance) at every policy tick, as any observer of `run_policy_episode`;
     `chunk(actions, accepted)` with each chunk sent to the controller (its rows' xyz in metres, the gripper's
-    request in column `gripper_column`) and `events(kinds)` with the controller's events since the last tick."""
+    request in policy.stage.GRIPPER_COLUMN) and `events(kinds)` with the controller's events since the last tick."""
 
-    def __init__(self, gripper_column: int):
-        self.gripper_column = int(gripper_column)
+    def __init__(self):
         self.rows: list[dict] = []
         self._view = None
         self._target: str | None = None
@@ -57,7 +58,7 @@ class Trace:
     def chunk(self, actions: np.ndarray, accepted: bool) -> None:
         if not self.rows:
             return
-        a, g = np.asarray(actions, float), self.gripper_column
+        a, g = np.asarray(actions, float), GRIPPER_COLUMN
         self.rows[-1].update({**_cm("aim", a[0, :3]), "aim_grip": round(float(a[0, g]), 2),
                               **_cm("end", a[-1, :3]), "end_grip": round(float(a[-1, g]), 2),
                               "chunk": "accepted" if accepted else "rejected"})

@@ -12,7 +12,7 @@ from tests.test_eval import SEED, Replay, collected  # noqa: F401 (a fixture)
 
 
 def test_a_trace_records_every_tick_the_chunks_sent_and_changes_nothing(collected, tmp_path):  # noqa: F811
-    trace = Trace(GRIPPER_COLUMN)
+    trace = Trace()
     seen = []
     out = run_policy_episode(Replay(collected.action), "pick_place", SEED, dr="heavy", latency_s=0.006, trace=trace,
                              observer=lambda world, inst: seen.append(world.tcp_pose()[:3, 3].copy()))
@@ -42,7 +42,7 @@ def test_a_trace_records_every_tick_the_chunks_sent_and_changes_nothing(collecte
 
 
 def test_events_are_kept_on_the_tick_they_came_in():
-    trace = Trace(GRIPPER_COLUMN)
+    trace = Trace()
     trace.events(["ignored before any tick"])
     assert trace.rows == []
     trace.rows.append({"t": 0.1})
