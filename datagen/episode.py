@@ -30,6 +30,7 @@ from sim.state import StateView
 
 log = logging.getLogger(__name__)
 LABEL_SOURCES = ("ground_truth", "check")
+GRIPPERS = ("driver", "servo")
 SETTLE_S = 0.3
 
 
@@ -62,6 +63,14 @@ class DatagenConfig:
         "each pick's grasp happens at a random horizontal offset of this std per axis from the planned one "
         "(datagen/dart.py), the recorded actions stay the plan's, so the policy learns to close when near, "
         "not only exactly on the plan; 0 leaves episodes exactly as without it")))
+    gripper: str = field(default="driver", metadata=spec(choices=GRIPPERS, doc=(
+        "how the fingers move: driver, as the 2F-85's driver moves them at gripper_speed and gripper_force "
+        "(sim/finger_drive.py, as the runtime's gripper twin), holds lasting until they stop; servo, an instant "
+        "full-force position servo (the collector before 2026-12-07: shut in 0.1 s with ~5x the squeeze)")))
+    gripper_speed: float = field(default=0.08, metadata=spec(0.02, 0.15, "m/s",
+                                 doc="finger speed with gripper = driver (the runtime's default, 80 mm/s)"))
+    gripper_force: float = field(default=40.0, metadata=spec(20.0, 235.0, "N",
+                                 doc="grip force with gripper = driver (the runtime's default, 40 N)"))
     handle_grasp: str = field(default="top", metadata=spec(choices=HANDLE_GRASPS, doc=(
         "how a drawer's handle is grasped: from above (the fingers closing across it horizontally) or from the "
         "front, level (the fingers closing above and below it, the gripper's outer links away from the drawer)")))
@@ -113,6 +122,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
     holdout = holdout or cfg.holdout()
     ep = build_episode(task, seed, cfg.dr, cfg.fidelity, holdout=holdout)
     world = ep.world
+    if cfg.gripper == "driver":
+        world.drive_fingers(cfg.gripper_speed, cfg.gripper_force)
     scene = describe(ep.instance)
     planner = planner or make_planner(cfg.planner, llm_url=cfg.llm_url or None, llm_model=cfg.llm_model or None)
     plan = planner.plan(ep.instruction, scene).validate(scene)
@@ -199,6 +210,8 @@ def run_episode(task: str, seed: int, cfg: DatagenConfig = DatagenConfig(), plan
             meta["path_noise_cm"] = cfg.path_noise_cm
         if cfg.grasp_noise_cm > 0:
             meta["grasp_noise_cm"] = cfg.grasp_noise_cm
+        if cfg.gripper == "driver":  # datasets of the servo collector keep their content hash
+            meta["gripper"] = {"speed_m_s": cfg.gripper_speed, "force_n": cfg.gripper_force}
         if cfg.handle_grasp != "top":
             meta["handle_grasp"] = cfg.handle_grasp
         if releases.records:  # where each placed object sat in the hand (datagen/release_offsets.py)

@@ -58,6 +58,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     gen.add_argument("--handle-grasp", default="top", choices=("top", "front"),
                      help="how a drawer's handle is grasped: from above (default) or from the front, level, the "
                           "fingers closing above and below the bar")
+    gen.add_argument("--gripper", default="driver", choices=("driver", "servo"),
+                     help="driver (default): the fingers move as the 2F-85's driver and the runtime's twin move them, "
+                          "at --gripper-speed and --gripper-force, each grasp and release held until they stop; "
+                          "servo: the collector before 2026-12-07, fingers shut in 0.1 s with ~5x the squeeze "
+                          "(to remake older datasets)")
+    gen.add_argument("--gripper-speed", type=float, default=0.08, metavar="M_S",
+                     help="finger speed with --gripper driver (0.02-0.15 m/s; default 0.08, the runtime's)")
+    gen.add_argument("--gripper-force", type=float, default=40.0, metavar="N",
+                     help="grip force with --gripper driver (20-235 N; default 40, the runtime's)")
     gen.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                      help="never use this object colour (repeatable), so `sudd eval --heldout` can test it")
     gen.add_argument("--holdout-shape", action="append", default=[], metavar="SHAPE",
@@ -87,6 +96,7 @@ def _generate(args) -> int:
         "dr": args.dr, "fidelity": args.fidelity, "max_retries": args.max_retries, "label": args.label,
         "perturb": args.perturb, "perturb_grasp": args.perturb_grasp,
         "path_noise_cm": args.path_noise_cm, "grasp_noise_cm": args.grasp_noise_cm, "handle_grasp": args.handle_grasp,
+        "gripper": args.gripper, "gripper_speed": args.gripper_speed, "gripper_force": args.gripper_force,
         "holdout_colors": args.holdout_color, "holdout_shapes": args.holdout_shape,
         "planner": args.planner, "llm_url": args.llm_url, "llm_model": args.llm_model})
     summary = generate(tasks, len(seeds), args.out, args.workers, partial(run_episode, cfg=cfg),

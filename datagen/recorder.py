@@ -57,7 +57,7 @@ class Recorder:
         q = w.arm_q() + self._rng.normal(0.0, self._sensor.q_noise_std, 6) if self._sensor.q_noise_std else w.arm_q()
         self._proprio.append(np.concatenate([T[:3, 3], rot6d(T[:3, :3]), [w.gripper_position()], q]))
         Tc = self.kin.fk(w.arm_target() if planned is None else planned)
-        self._target.append(np.concatenate([Tc[:3, 3], rot6d(Tc[:3, :3]), [w.gripper_command()]]))
+        self._target.append(np.concatenate([Tc[:3, 3], rot6d(Tc[:3, :3]), [w.gripper_goal()]]))
         self._subtasks.append(PERTURBED if perturbed else self.subtask)
         self._times.append(w.time)
 

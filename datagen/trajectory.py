@@ -101,6 +101,10 @@ class Motion:
         return Motion(out)
 
 
+FINGERS_STILL_S = 0.1  # a hold ends once the fingers have been still this long...
+FINGERS_MOST_S = 1.5  # ...or this long after its planned end
+
+
 def execute(world, motion: Motion, observer=None, offsets: np.ndarray | None = None) -> None:
     """Run `motion` on `world` at the physics rate: one joint target and one mj_step per 2 ms.
 
@@ -109,14 +113,38 @@ def execute(world, motion: Motion, observer=None, offsets: np.ndarray | None = N
     `offsets` (steps, 6), one row per physics step (datagen.dart), are added to the commanded joints; the
     observer is then called as `observer(world, label, planned)` with the planned joints, what to record
     as the action.
+
+    With a finger drive on the world (`world.drive_fingers`), the fingers move at the driver's speed: a hold
+    (grasp, release) lasts past its planned time until they have stopped, as a careful operator waits, so
+    that nothing is lifted before the fingers have closed on it.
     """
     dt = world.timestep
-    k = 0
+    fingers = world.fingers
+    k = still = 0  # still: physics steps since the fingers last moved
+
+    def step(q) -> None:
+        nonlocal still
+        world.set_arm_target(q if offsets is None else q + offsets[k])
+        if fingers is not None:
+            fingers.update(dt)
+        world.step()
+        if fingers is not None:
+            still = 0 if fingers.ramping or fingers.moving() else still + 1
+        if observer is not None:
+            observer(world, seg.label, *(() if offsets is None else (q,)))
+
     for seg in motion.segments:
-        world.set_gripper(seg.gripper)
+        if fingers is None:
+            world.set_gripper(seg.gripper)
+        elif seg.gripper != fingers.target:
+            fingers.command(seg.gripper)
         for q in seg.targets(dt):
-            world.set_arm_target(q if offsets is None else q + offsets[k])
-            world.step()
-            if observer is not None:
-                observer(world, seg.label, *(() if offsets is None else (q,)))
+            step(q)
             k += 1
+        if fingers is not None and np.all(seg.q == seg.q[0]):
+            k_last, k = k, max(k - 1, 0)  # the hold's last offset goes on
+            for _ in range(int(round(FINGERS_MOST_S / dt))):
+                if still * dt >= FINGERS_STILL_S:
+                    break
+                step(seg.q[-1])
+            k = k_last

@@ -5,6 +5,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from sim.finger_drive import FingerDrive, force_register, speed_register
 from sim.robot import (
     ARM_ACTUATORS,
     ARM_JOINTS,
@@ -36,6 +37,7 @@ class World:
         self.gripper_qpos_adr = np.array([model.jnt_qposadr[model.joint(n).id] for n in GRIPPER_DRIVER_JOINTS])
         self.tcp_site = model.site(TCP_SITE).id
         self.flange_site = model.site(FLANGE_SITE).id
+        self.fingers: FingerDrive | None = None  # set by drive_fingers(): the fingers move as the driver moves them
         self.reset()
 
     # -- state -----------------------------------------------------------------------------------
@@ -78,7 +80,19 @@ class World:
         self.data.ctrl[self.gripper_actuator] = float(np.clip(closing, 0.0, 1.0)) * GRIPPER_CTRL_MAX
 
     def gripper_command(self) -> float:
+        """The actuator's command in [0, 1] (with a finger drive: the point its ramp has reached)."""
         return float(self.data.ctrl[self.gripper_actuator] / GRIPPER_CTRL_MAX)
+
+    def drive_fingers(self, speed_m_s: float, force_n: float) -> FingerDrive:
+        """From now on the fingers move as the 2F-85's driver moves them, at this speed and force
+        (sim/finger_drive.py); whoever steps the world calls `fingers.command` and `fingers.update`."""
+        self.fingers = FingerDrive(self)
+        self.fingers.set(speed_register(speed_m_s), force_register(force_n))
+        return self.fingers
+
+    def gripper_goal(self) -> float:
+        """The closure asked for in [0, 1]: the finger drive's target, or the actuator's command without one."""
+        return self.fingers.target if self.fingers is not None else self.gripper_command()
 
     def gripper_position(self) -> float:
         """Measured finger closure in [0, 1] from the driver joints (0 open, 1 closed)."""

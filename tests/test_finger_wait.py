@@ -5,7 +5,6 @@ import pytest
 
 from policy.stage import GRIPPER_COLUMN as G
 from runtime.finger_wait import FingerWait, Wait
-from tests.test_eval import collected  # noqa: F401 (a fixture)
 
 
 def step(closure: float, at=(0.4, 0.1, 0.05)) -> np.ndarray:
@@ -69,6 +68,17 @@ def test_off_nothing_changes():
     assert ticks(FingerWait(enabled=False), 1.0, [0.1, 0.2, 0.3]) == [False, False, False]
 
 
+@pytest.fixture(scope="module")
+def servo_collected():
+    """The pick as the shipped bundle's data recorded it: the servo collector's fingers shut in 0.1 s."""
+    from datagen.episode import DatagenConfig, run_episode
+    from tests.test_eval import SEED
+
+    ep = run_episode("pick_place", SEED, DatagenConfig(dr="heavy", gripper="servo"))
+    assert ep.meta["success"]
+    return ep
+
+
 def _height_when_closed(collected, wait: bool) -> float:
     """Replay the collector's pick through the runtime, lifting 0.2 s after the close where the collector waited
     0.6 s (as the policy did on drawer_stow seed 100502): how high over its grasp height the TCP was [m] when the
@@ -90,6 +100,6 @@ def _height_when_closed(collected, wait: bool) -> float:
     return float(z[stopped] - z[k])
 
 
-def test_replayed_through_the_runtime_a_pick_that_lifts_early_waits_for_the_fingers(collected):  # noqa: F811
-    assert _height_when_closed(collected, wait=False) > 0.03  # 80 mm/s fingers: they meet the object's top part
-    assert _height_when_closed(collected, wait=True) < 0.015  # held until they stopped (one chunk's blend of rise)
+def test_replayed_through_the_runtime_a_pick_that_lifts_early_waits_for_the_fingers(servo_collected):
+    assert _height_when_closed(servo_collected, wait=False) > 0.03  # 80 mm/s fingers: they meet the object's top
+    assert _height_when_closed(servo_collected, wait=True) < 0.015  # held until they stopped (one chunk's blend of rise)

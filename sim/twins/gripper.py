@@ -1,10 +1,9 @@
 """SimGripper: the Robotiq 2F-85 twin (GripperDriver) on the MuJoCo 2F-85 model.
 
-Why a ramp: the real 2F-85 moves its fingers at the commanded speed (20-150 mm/s over the 85 mm stroke),
-not at whatever a position servo would do, so the twin ramps the actuator command at that rate and the
-MuJoCo servo follows it. Force scales the actuator's force limit (the real gripper's 20-235 N maps to
-10-100 % of the model's limit). Like gOBJ, `object_detected` is set when the fingers have stopped short of
-their target (closing or opening) with a finger pad touching something that is not the robot.
+The fingers move as the real driver moves them, at the commanded speed and squeezing with the commanded force
+(sim/finger_drive.py, the model the data collector shares). Like gOBJ, `object_detected` is set when the fingers
+have stopped short of their target (closing or opening) with a finger pad touching something that is not the
+robot.
 """
 
 from __future__ import annotations
@@ -12,13 +11,10 @@ from __future__ import annotations
 import numpy as np
 
 from sim.devices import GripperState, check_scalar
-from sim.robot import GRIPPER_STROKE
+from sim.finger_drive import STILL_SPEED, FingerDrive
 
-SPEED_RANGE_M_S = (0.020, 0.150)  # finger speed at speed = 0 and 1
-FORCE_MIN_FRACTION = 0.1  # force = 0 gives this fraction of the model's force limit
 _AT_TARGET_TOL = 0.03  # measured position within this of the target counts as "at the target"
-_STILL_SPEED = 0.05  # rad/s of the driver joints: below this the fingers count as stopped
-_STILL_CYCLES = 10  # ...for this many consecutive cycles
+_STILL_CYCLES = 10  # the fingers count as stopped after this many cycles under STILL_SPEED
 _WAIT_TIMEOUT_S = 5.0
 
 
@@ -27,13 +23,8 @@ class SimGripper:
 
     def __init__(self, rig):
         self._rig, self._world = rig, rig.world
-        m = self._world.model
-        self._dof = np.array([m.jnt_dofadr[m.jnt_qposadr.tolist().index(a)] for a in self._world.gripper_qpos_adr])
-        self._act = self._world.gripper_actuator
-        self._force_limit = m.actuator_forcerange[self._act].copy()
+        self._drive = FingerDrive(self._world)
         self._activated = False
-        self._target = self._cmd = self._world.gripper_command()
-        self._rate = 0.0
         self._moving = False
         self._still = 0
         self._object = False
@@ -49,12 +40,8 @@ class SimGripper:
         with self._rig.lock:
             if not self._activated:
                 return False
-            lo, hi = SPEED_RANGE_M_S
-            self._rate = (lo + speed * (hi - lo)) / GRIPPER_STROKE  # stroke fraction per second
-            scale = FORCE_MIN_FRACTION + (1.0 - FORCE_MIN_FRACTION) * force
-            self._world.model.actuator_forcerange[self._act] = self._force_limit * scale
-            self._target = position
-            self._cmd = self._world.gripper_position()  # the ramp starts where the fingers are
+            self._drive.set(speed, force)
+            self._drive.command(position)
             self._moving, self._still, self._object = True, 0, False
         if wait:
             self._rig.wait_until(lambda: not self._moving, _WAIT_TIMEOUT_S)
@@ -68,8 +55,8 @@ class SimGripper:
 
     def state(self) -> GripperState:
         with self._rig.lock:
-            return GripperState(position=self._world.gripper_position(), target=self._target, is_moving=self._moving,
-                                object_detected=self._object, timestamp_ns=self._rig.sample_ns,
+            return GripperState(position=self._world.gripper_position(), target=self._drive.target,
+                                is_moving=self._moving, object_detected=self._object, timestamp_ns=self._rig.sample_ns,
                                 is_activated=self._activated)
 
     def disconnect(self) -> None:
@@ -77,19 +64,18 @@ class SimGripper:
 
     # -- called by the rig each control cycle (lock held) ---------------------------------------------------
     def _update(self, dt: float) -> None:
-        step = self._rate * dt
-        self._cmd += float(np.clip(self._target - self._cmd, -step, step))
-        self._world.set_gripper(self._cmd)
+        self._drive.update(dt)
         if not (self._moving or self._object):
             return
-        if np.max(np.abs(self._world.data.qvel[self._dof])) >= _STILL_SPEED:
+        if self._drive.moving(STILL_SPEED):
             self._still, self._moving, self._object = 0, True, False
             return
         self._still += 1
         if self._still < _STILL_CYCLES:
             return
-        touching = abs(self._world.gripper_position() - self._target) > _AT_TARGET_TOL and self._pads_touch_object()
-        if touching or abs(self._cmd - self._target) < 1e-9:  # stopped on an object, or the ramp is done
+        short = abs(self._world.gripper_position() - self._drive.target) > _AT_TARGET_TOL
+        touching = short and self._pads_touch_object()
+        if touching or not self._drive.ramping:  # stopped on an object, or the ramp is done
             self._moving, self._object = False, touching
 
     def _pads_touch_object(self) -> bool:
