@@ -26,8 +26,9 @@ suites (each on seeds OFFSET..OFFSET+N-1; keep OFFSET away from the training see
               `sudd datagen --holdout-color/--holdout-shape`, or given here)
   paraphrase  the command in a phrasing the data never used (the task family's `paraphrases`)
 
-the data collector (planner + primitives + verify-and-retry with privileged state, `sudd datagen`'s policy)
-runs on the same seeds for `seen` and `heldout`; it cannot parse unseen phrasings, so not for `paraphrase`.
+the data collector (planner + primitives + verify-and-retry with privileged state, `sudd datagen`'s policy,
+its fingers moved as the gripper twin's are) runs on the same seeds for `seen` and `heldout`; it cannot parse
+unseen phrasings, so not for `paraphrase`.
 
 examples:
   sudd eval --policy policy/bundles/demo --task pick_place --episodes 50 --dr heavy --seed-offset 100000
@@ -363,4 +364,4 @@ def _collector(task: str, seed: int, dr: str, holdout) -> dict:
         return {"success": False, "end": f"error: {exc!r}"[:300], "sim_seconds": None}
     return {"success": bool(ep.meta["success"]), "end": "success" if ep.meta["success"] else "failure",
             "sim_seconds": ep.meta.get("sim_seconds"), "command": ep.meta["instruction"],
-            "retries": ep.meta.get("retries")}
+            "retries": ep.meta.get("retries"), "gripper": cfg.gripper}
