@@ -46,7 +46,7 @@ class FingerDrive:
         m = world.model
         self.dof = np.array([m.jnt_dofadr[m.jnt_qposadr.tolist().index(a)] for a in world.gripper_qpos_adr])
         self._act = world.gripper_actuator
-        self._force_limit = world.model.actuator_forcerange[self._act].copy()
+        self._force_limit = m.actuator_forcerange[self._act].copy()
         self.target = self._cmd = world.gripper_command()
         self.rate = 0.0  # stroke fraction per second
 
