@@ -30,7 +30,7 @@ command raises it only as the gripper reports its fingers closed (asked every `C
 `SETTLE_S` after the command until they stop): fingers that close on an object stop at its width.
 
 Units: the driver speaks normalised registers (position 0 open .. 1 closed, speed/force 0..1); safety's
-`limit_gripper` speaks metres, m/s and N. The 2F-85's ranges convert between them.
+`limit_gripper` speaks metres, m/s and N. The 2F-85's ranges convert between them (sim/finger_drive.py).
 """
 
 from __future__ import annotations
@@ -38,19 +38,14 @@ from __future__ import annotations
 import math
 
 from safety.gripper import limit_gripper
+from sim.finger_drive import force_register, speed_register
 
 STROKE_M = 0.085  # 2F-85 finger gap fully open
-SPEED_RANGE = (0.020, 0.150)  # m/s at normalised speed 0 and 1
-FORCE_RANGE = (20.0, 235.0)  # N at normalised force 0 and 1
 CHECK_PERIOD_S = 0.1  # how often an unverified close asks the gripper what it holds
 SETTLE_S = 0.2  # after a close edge, the fingers have not started to move yet: no verdict before this
 EMPTY_CLOSED = 0.9  # finger closure (0 open .. 1 closed) beyond which a stopped gripper holds nothing
 PARTIAL_STEP = 0.05  # the closures tried for an opening a keep-out box holds back, most open first
 LET_GO = 0.1  # a partial opening at least this much more open than the bound lets go of what the fingers hold
-
-
-def _norm(x: float, lo: float, hi: float) -> float:
-    return min(1.0, max(0.0, (x - lo) / (hi - lo)))
 
 
 BINARY = (0.0, 1.0)  # open and closed: the levels of a bundle that records none
@@ -121,7 +116,7 @@ class GripperChannel:
                               message="the fingers opened only as far as the keep-out boxes allow here, the rest "
                                       "once the arm moves clear (closure now / wanted)")
             short_of, position = (position, cmd), part
-        ok = self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE), wait=False)
+        ok = self.gripper.move(position, speed_register(cmd.speed), force_register(cmd.force), wait=False)
         if ok:
             if self.level is not None:  # the first command only sets the state: no hold after it
                 self._edge_at = now
@@ -153,7 +148,7 @@ class GripperChannel:
         position, cmd = self._short_of
         if not self.may_open(position):
             return None
-        if not self.gripper.move(position, _norm(cmd.speed, *SPEED_RANGE), _norm(cmd.force, *FORCE_RANGE),
+        if not self.gripper.move(position, speed_register(cmd.speed), force_register(cmd.force),
                                  wait=False):
             return None
         self._short_of = None
