@@ -1,20 +1,21 @@
 """The arm waits for the fingers: while they are still closing (or opening) as the chunk asks, it holds its pose.
 
-Why: the shipped bundle's data gripper is not the runtime's. Its collector set the 2F-85 model's finger servo at once
-(`sudd datagen --gripper servo`; the default now moves them as the twin does, sim/finger_drive.py), and the
+Why: the shipped bundle's data gripper is not the runtime's. Its collector set the 2F-85 model's finger servo at
+once (`sudd datagen --gripper servo`; the default now moves them as the twin does, sim/finger_drive.py), and the
 fingers met an object within 0.1 s of the close; it then held still 0.6 s and lifted (datagen.primitives'
-GRASP_SECONDS). The runtime's gripper, like the real one, moves its fingers at the commanded speed (the
-controller's `gripper_speed`, 80 mm/s: 0.65 s to close on a 4 cm block through the SimGripper twin). So the
-policy, which learned to lift about 0.5 s after it asks for a close, lifts while the fingers are still closing: they meet the
-object when the TCP is already near its top, a grasp on the pads' lowest few millimetres that slips out on the way
-to the drawer (drawer_stow seed 100502: closed 2.5 cm above a 4.3 cm cylinder's centre, dropped at 25 cm/s;
-policy/EXPERIMENTS.md, "The arm waits for the fingers"). Holding the arm where it is while the measured closure
-still moves the way the chunk asks gives the grasp the data had: fingers closed on the object before it lifts.
+GRASP_SECONDS). The runtime's gripper, like the real one, moves its fingers at the commanded speed (the controller's
+`gripper_speed`, 80 mm/s: 0.65 s to close on a 4 cm block through the SimGripper twin). So the policy, which learned
+to lift about 0.5 s after it asks for a close, lifts while the fingers are still closing: they meet the object when
+the TCP is already near its top, a grasp on the pads' lowest few millimetres that slips out on the way to the drawer
+(drawer_stow seed 100502: closed 2.5 cm above a 4.3 cm cylinder's centre, dropped at 25 cm/s; policy/EXPERIMENTS.md,
+"The arm waits for the fingers"). Holding the arm where it is while the measured closure still moves the way the
+chunk asks gives the grasp the data had: fingers closed on the object before it lifts.
 
 A hold lasts until the fingers stop (their measured closure changes slower than `Wait.moving` per second between
 the last tick's newest observation and this tick's) or `Wait.most_s`, whichever is first: fingers that never
-stop do not freeze the arm. A chunk that asks the gripper the other way (a close undone) is played as it is. numpy only: the runtime's policy node and `sudd eval` both
-use it, on the policy's own chunks (not a look's or a retreat's).
+stop do not freeze the arm. A chunk that asks the gripper the other way (a close undone) is played as it is. numpy
+only: the runtime's policy node and `sudd eval` both use it, on the policy's own chunks (not a look's or a
+retreat's).
 """
 
 from __future__ import annotations
