@@ -10,6 +10,8 @@ offset measured on recorded episodes (`datagen.views.measure_offsets`), the offs
   axis, so the release (the handle pulled out, or pushed in) is a fixed offset only there. drawer_put's first
   grasp is the handle's (it opens the drawer first); the views of its later grasps (the object, with the
   drawer open; the handle again, to close it) are datagen/views_stages.py's.
+- drawer_stow (drawer_put's middle, the drawer open from the start): the object, and the open drawer's floor in
+  the cabinet's frame (the drawer's travel is along it, so the release is a fixed offset only there).
 
 The grasp yaw and footprint period feed the grasp-axis label (policy/grasp_axis.py). A handle is part of the
 cabinet, not a picked-up object, and recorded drawer episodes carry no axis label, so the handle's period is 0.
@@ -26,10 +28,12 @@ from sim.tasks.drawer import CABINET, SLIDE
 from sim.tasks.pick_place import footprint_period, grasp_yaw
 
 HANDLE = f"{CABINET}/handle_site"
+INSIDE = f"{CABINET}/inside"  # the drawer's cavity, a box site that slides with it
 DRAWERS = ("drawer_open", "drawer_close", "drawer_put")
+STOWS = ("drawer_stow",)  # the families that put an object into an open drawer as their first grasp
 # the families that carry an object from a grasp to a release: the params naming it and where it goes
 CARRIES = {"pick_place": ("target", "bin"), "stack": ("top", "bottom")}
-FAMILIES = tuple(CARRIES) + DRAWERS
+FAMILIES = tuple(CARRIES) + DRAWERS + STOWS
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,21 @@ def _object_pair(ep, picked: str, goal: str) -> Anchors:
     name = ep.instance.params[picked]
     obj = ep.instance.obj(name)
     return Anchors(state.position(name), state.position(ep.instance.params[goal]), np.eye(3),
+                   float(grasp_yaw(obj, state.rotation(name))), float(footprint_period(obj) or 0.0), name)
+
+
+def drop_point(ep) -> np.ndarray:
+    """The middle of the open drawer's floor, where the collector's place aims (give or take its sampling)."""
+    lo, hi = StateView(ep.world).aabb(INSIDE)
+    return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+
+
+def object_to_drawer(ep) -> Anchors:
+    """The named object (params "target") where it lies, and the open drawer's floor, in the cabinet's frame."""
+    state = StateView(ep.world)
+    name = ep.instance.params["target"]
+    obj = ep.instance.obj(name)
+    return Anchors(state.position(name), drop_point(ep), state.rotation(CABINET),
                    float(grasp_yaw(obj, state.rotation(name))), float(footprint_period(obj) or 0.0), name)
 
 
@@ -77,4 +96,6 @@ def anchors(ep) -> Anchors:
         return _object_pair(ep, *CARRIES[family])
     if family in DRAWERS:
         return _drawer(ep)
+    if family in STOWS:
+        return object_to_drawer(ep)
     raise ValueError(f"no view labels for task family {family!r}; views know {', '.join(FAMILIES)}")

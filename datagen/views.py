@@ -31,7 +31,8 @@ from datagen.recorder import Recorder
 from datagen.schema import IMAGE_SIZE, episode_success, grasp_and_release_per_step
 from datagen.view_anchors import FAMILIES, check_carries
 from datagen.views_carry import carry_pose, grasp_in_hand, nearest_half_turn, place_carried, tool_yaw
-from datagen.views_stages import label_key, parse_key, set_stage, stage_anchors, stage_index, stages, start_pose
+from datagen.views_stages import (OBJECT_AT_START, label_key, parse_key, set_stage, stage_anchors, stage_index, stages,
+                                   start_pose)
 from sim.build import build_episode
 from sim.kinematics import UnreachableError
 from sim.rotations import rotvec_to_matrix
@@ -107,8 +108,9 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     closed fingers on its way to the release (datagen/views_carry.py; none when the scene's grasp fails).
     A long task's later `stage` (datagen/views_stages.py) shows the scene as the collector leaves it before
     that grasp, the views on the way there from the last release; `offsets` are that stage's. `at_home`: the
-    scene as the episode starts instead (the drawer shut, the arm at home), with the later stage's labels (where
-    the object will be taken from and put), for a question asked at the start (policy/goal_locator.py).
+    scene as the episode starts instead (drawer_put's drawer shut, the arm at home), with the labels of the grasp
+    whose object lies where it starts (views_stages.OBJECT_AT_START: where it will be taken from and put), for a
+    question asked at the start (policy/goal_locator.py's object locator).
     `look`: the first view with the TCP moved this far from home (base frame, metres; its orientation kept), the
     pose a goal query looks from (policy/goal_query.py: where home's wrist camera misses part of the table)."""
     if carry:
@@ -118,9 +120,9 @@ def scene_views(seed: int, views: int, offsets: dict, holdout: Holdout = Holdout
     ep = build_episode(task, seed, "heavy", fidelity, holdout=holdout)
     world = ep.world
     rng = np.random.default_rng([int(seed), 0x71E5, index] if index else [int(seed), 0x71E5])
-    if at_home and index != 1:
-        raise ValueError(f"at_home views label a later grasp from the start; {task}'s {stage or 'first'} grasp "
-                         "is not one whose object is where it starts (drawer_put's object is)")
+    if at_home and index != OBJECT_AT_START.get(task):
+        raise ValueError(f"at_home views label an object's grasp from the start; {task}'s {stage or 'first'} grasp "
+                         "is not one whose object is where it starts (drawer_put's object is, and drawer_stow's)")
     start_state = world.data.qpos.copy(), world.data.qvel.copy()
     set_stage(ep, index)
     a = stage_anchors(ep, index)

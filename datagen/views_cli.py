@@ -1,9 +1,11 @@
 """`sudd views`: render labelled views of heavy-DR scenes of one task family (no physics, no planning) to
 pretrain the policy's image encoder to find what the instruction names (see datagen/views.py, then
 `sudd pretrain`): the object and its bin (pick_place), the two blocks (stack), the drawer's handle
-(drawer_open, drawer_close, drawer_put). Render each family into the same directory, one command each.
-A long task's later grasps have views of their own (--stage; datagen/views_stages.py): drawer_put's object,
-with the drawer open, and its handle again, with the object in the open drawer.
+(drawer_open, drawer_close, drawer_put), the object and the open drawer's floor (drawer_stow). Render each
+family into the same directory, one command each. A long task's later grasps have views of their own (--stage;
+datagen/views_stages.py): drawer_put's object, with the drawer open, and its handle again, with the object in
+the open drawer. --at-home renders, for the object locator (sudd pretrain --object-locator), the scene as it
+starts labelled with the grasp whose object lies where it starts: drawer_put's object, drawer_stow's.
 
 The labels' offsets (where an episode closes and opens the gripper, relative to the object and the bin, the
 blocks, the handle) are measured on recorded episodes of the family (--offsets-from). Shards of 50 scenes land
@@ -30,15 +32,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                "  sudd views --task drawer_open --out out/views --scenes 600 --seed-offset 210000 "
                "--offsets-from out/data_do --holdout-color purple\n"
                "  sudd views --task drawer_put --stage object --out out/views --scenes 600 --seed-offset 212000 "
-               "--offsets-from out/data_dput --holdout-color purple")
+               "--offsets-from out/data_dput --holdout-color purple\n"
+               "  sudd views --task drawer_stow --at-home --views 1 --out out/views_home --scenes 4000 "
+               "--seed-offset 800000 --offsets-from out/data_stow --holdout-color purple")
     v.add_argument("--task", default="pick_place",
-                   help="task family: pick_place (default), stack, drawer_open, drawer_close or drawer_put")
+                   help="task family: pick_place (default), stack, drawer_open, drawer_close, drawer_put or "
+                        "drawer_stow")
     v.add_argument("--stage", default="", metavar="STAGE",
                    help="a long task's later grasp to render the way to: drawer_put's object (the drawer open) or "
                         "close (the object in the open drawer, the handle again); default the first grasp")
     v.add_argument("--at-home", action="store_true",
-                   help="with --stage object: the scene as the episode starts (drawer shut, arm at home) with the "
-                        "object stage's labels, for an object locator (sudd pretrain --object-locator)")
+                   help="the scene as the episode starts (the arm at home) with the labels of the grasp whose object "
+                        "lies where it starts: drawer_put's with --stage object (its drawer still shut), "
+                        "drawer_stow's first; for an object locator (sudd pretrain --object-locator)")
     v.add_argument("--look", default="", metavar="DX,DY,DZ",
                    help="render each scene's first view with the TCP this far from home (metres, base frame, each "
                         f"within {MAX_LOOK_M} m; e.g. 0.15,0.08,0.1): the look pose of a goal locator "
@@ -65,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _views(args) -> int:
     from datagen.view_anchors import FAMILIES, check_carries
     from datagen.views import generate, measure_offsets
-    from datagen.views_stages import label_key, stage_index
+    from datagen.views_stages import OBJECT_AT_START, label_key, stage_index
     from sim.config import load_config
     from sim.tasks import Holdout
 
@@ -84,9 +90,9 @@ def _views(args) -> int:
 
     look = parse_look(args.look) if args.look else None
     key = label_key(args.task, args.stage)
-    if args.at_home and stage_index(args.task, args.stage) != 1:
-        raise ValueError(f"--at-home labels a later grasp from the start: give --task drawer_put --stage object "
-                         f"(got --task {args.task} --stage {args.stage or '(first)'})")
+    if args.at_home and stage_index(args.task, args.stage) != OBJECT_AT_START.get(args.task):
+        raise ValueError(f"--at-home labels an object's grasp from the start: give --task drawer_put --stage object "
+                         f"or --task drawer_stow (got --task {args.task} --stage {args.stage or '(first)'})")
     offsets = measure_offsets(args.offsets_from, key)
     shards = generate(args.out, range(args.seed_offset, args.seed_offset + args.scenes), args.views, offsets,
                       holdout, carry=args.carry_views, task=args.task, stage=args.stage, at_home=args.at_home,

@@ -19,14 +19,15 @@ from __future__ import annotations
 import numpy as np
 
 from datagen.articulated import OPEN_TARGET
-from datagen.view_anchors import HANDLE, Anchors, anchors
+from datagen.view_anchors import HANDLE, Anchors, anchors, drop_point, object_to_drawer
 from datagen.views_carry import free_qpos
 from sim.state import StateView
-from sim.tasks.drawer import CABINET, SLIDE, set_drawer
-from sim.tasks.pick_place import footprint_period, grasp_yaw
+from sim.tasks.drawer import SLIDE, set_drawer
 
 STAGES = {"drawer_put": ("handle", "object", "close")}  # a long task's grasps, in the collector's order
-INSIDE = f"{CABINET}/inside"
+# the grasp cycle whose object lies where it starts, so it can be found from the start (`sudd views --at-home`,
+# the object locator): drawer_put's after the handle, drawer_stow's first (the drawer is open already)
+OBJECT_AT_START = {"drawer_put": 1, "drawer_stow": 0}
 ABOVE_HANDLE = 0.10  # the collector lets go of the handle and rises this far before it moves on
 ABOVE_DROP = 0.14  # the place primitive's approach height above the drop (sim/tasks/drawer_put.py)
 
@@ -57,12 +58,6 @@ def stage_index(task: str, stage: str = "") -> int:
     return stages(task).index(stage) if stage else 0
 
 
-def drop_point(ep) -> np.ndarray:
-    """The middle of the open drawer's floor, where the collector's place aims (give or take its sampling)."""
-    lo, hi = StateView(ep.world).aabb(INSIDE)
-    return np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
-
-
 def set_stage(ep, stage: int) -> None:
     """Put a built drawer_put scene where the collector leaves it before grasp `stage`: the drawer open to its
     target from the second grasp on, and for the third the object lying in it."""
@@ -83,13 +78,7 @@ def set_stage(ep, stage: int) -> None:
 def stage_anchors(ep, stage: int) -> Anchors:
     """The anchors of grasp `stage` in a scene set_stage has put there: the object and the open drawer's floor
     for the second, the open drawer's handle and where it is shut for the third (as for the first)."""
-    if stage != 1:
-        return anchors(ep)
-    state = StateView(ep.world)
-    name = ep.instance.params["target"]
-    obj = ep.instance.obj(name)
-    return Anchors(state.position(name), drop_point(ep), state.rotation(CABINET),
-                   float(grasp_yaw(obj, state.rotation(name))), float(footprint_period(obj) or 0.0), name)
+    return anchors(ep) if stage != 1 else object_to_drawer(ep)
 
 
 def start_pose(ep, home: np.ndarray, stage: int) -> np.ndarray:

@@ -97,9 +97,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "and head taught, on the views at home, where the role-swapped command's object is, validated by the query's "
         "error on --data's episodes; export it with `sudd export BUNDLE --goal-query stack ... --goal-locator RUN`"))
     pre.add_argument("--object-locator", action="store_true", help=(
-        "train an object locator instead: the same copy taught where drawer_put's object is and where in the drawer "
-        "it goes, from the start (views of `sudd views --task drawer_put --stage object --at-home`), validated on "
-        "--data's drawer_put episodes; try it with `sudd oracle-eval BUNDLE --task drawer_put --phases --points-from RUN`"))
+        "train an object locator instead: the same copy taught where drawer_put's (and drawer_stow's) object is and "
+        "where in the drawer it goes, from the start (views of `sudd views --task drawer_put --stage object "
+        "--at-home`, `sudd views --task drawer_stow --at-home`), validated on --data's episodes of each; try it with "
+        "`sudd oracle-eval BUNDLE --task drawer_put --phases --points-from RUN`"))
     pre.add_argument("--turn-locator", action="store_true", help=(
         "train a turn locator instead (policy/turn_query.py): the same copy taught how far the wrist must turn to "
         "grasp the command's object square to its faces, on views along the way to the grasp (`sudd views --task "
@@ -278,9 +279,13 @@ def _locator_line(question: str, s: dict, args) -> str:
                 f"(medians; not turning: {val['no_turn_deg_median']:.1f}); next: sudd export {args.init_from} --out "
                 f"BUNDLE --queries-from {args.init_from} --turn-locator {s['run_dir']}")
     if question == "object":
-        return (f"object locator {s['run_dir']} ({s['views']} home views), on {args.data}'s drawer_put episodes: the "
-                f"object {b['object_grasp_cm_median']:.2f} -> {val['object_grasp_cm_median']:.2f} cm off, the drop "
-                f"{b['object_release_cm_median']:.2f} -> {val['object_release_cm_median']:.2f} cm (medians)")
+        prefixes = ["object_"] + sorted({k[:-len("grasp_cm_median")] for k in val
+                                         if k.endswith("_grasp_cm_median") and k != "object_grasp_cm_median"})
+        return (f"object locator {s['run_dir']} ({s['views']} home views), on {args.data}'s episodes (medians; the "
+                f"first family, then each other): " + "; ".join(
+                    f"{p[len('object_'):-1] or 'first'}: the object {b[p + 'grasp_cm_median']:.2f} -> "
+                    f"{val[p + 'grasp_cm_median']:.2f} cm off, the drop {b[p + 'release_cm_median']:.2f} -> "
+                    f"{val[p + 'release_cm_median']:.2f} cm" for p in prefixes))
     where = "the look pose " + str(s["look_m"]) if s.get("look_m") else "home"
     return (f"goal locator {s['run_dir']} ({s['views']} views from {where}): the goal query's release point on "
             f"{args.data} {b['goal_cm_median']:.2f} -> {val['goal_cm_median']:.2f} cm off (median; p75 "

@@ -53,14 +53,15 @@ def check_question(question: str) -> slice:
 
 def _first_views(v: dict, home_stage: bool) -> np.ndarray:
     """Each scene's first view: of its first stage (home_stage False; a later stage's views set out from where the
-    last release left the arm), or of a later stage rendered at home (`sudd views --at-home`)."""
+    last release left the arm), or of an object's grasp rendered at home (`sudd views --at-home`: drawer_put's
+    later stage, drawer_stow's first)."""
     n = len(v["instruction"])
     first = np.zeros(n, bool)
     at_home = v.get("at_home", np.zeros(n, bool))
     scene = list(zip(v["seed"].tolist(), [str(t) for t in v["task"]], [str(s) for s in v["stage"]]))
     seen: set = set()
     for i, key in enumerate(scene):
-        wanted = bool(key[2]) and bool(at_home[i]) if home_stage else not key[2]
+        wanted = bool(at_home[i]) if home_stage else not key[2] and not at_home[i]
         if key not in seen and wanted:
             seen.add(key)
             first[i] = True
@@ -88,8 +89,9 @@ def locator_rows(v: dict, question: str = "goal") -> dict:
     if question == "object":
         keep = np.flatnonzero(_first_views(v, home_stage=True))
         if not len(keep):
-            raise ValueError("no home view of a later stage: the object locator learns drawer_put's object from the "
-                             "start; render them with `sudd views --task drawer_put --stage object --at-home`")
+            raise ValueError("no home view of an object's grasp: the object locator learns drawer_put's and "
+                             "drawer_stow's object from the start; render them with `sudd views --task drawer_put "
+                             "--stage object --at-home` or `sudd views --task drawer_stow --at-home`")
         return {k: (val[keep] if isinstance(val, np.ndarray) and len(val) == n else val) for k, val in v.items()}
     first = _first_views(v, home_stage=False)
     swapped = [role_swap(str(t)) for t in v["instruction"]]
@@ -182,19 +184,25 @@ def check_compatible(policy_cfg, locator_cfg) -> None:
 def object_query_table(policy_cfg, normalizer, request: dict, data_info: dict) -> tuple[dict, torch.nn.Module]:
     """(the manifest's object_query table, the locator) for `sudd export --object-query` (policy/object_query.py):
     request {"families", "data", "locator" (a `sudd pretrain --object-locator` run), "ticks"}; the locator's error
-    measured on the data's episodes of each family (policy.goal_query_measure.measure_object)."""
+    measured on the data's episodes of each family it serves (policy.goal_query_measure.measure_objects), the
+    skill families it serves too (policy.object_query.with_skill_families: drawer_stow) where the data has some."""
     from datagen.store import Dataset
     from datagen.views_stages import STAGES
-    from policy.goal_query_measure import measure_object
+    from policy.goal_query_measure import measure_objects
+    from policy.object_query import with_skill_families
 
     families = list(request["families"])
-    wrong = [f for f in families if f not in STAGES or f not in data_info.get("tasks", [])]
+    tasks = data_info.get("tasks", [])
+    wrong = [f for f in families if f not in STAGES or f not in tasks]
     if wrong:
         raise ValueError(f"--object-query {', '.join(wrong)}: the object query serves a later grasp of a long task the "
-                         f"policy was trained on ({', '.join(f for f in STAGES if f in data_info.get('tasks', []))})")
+                         f"policy was trained on ({', '.join(f for f in STAGES if f in tasks)})")
     locator, record = load_locator(request["locator"], policy_cfg, "object")
     ticks = int(request.get("ticks", 3))
-    measured = {f: measure_object(locator, normalizer, request["data"], f, 1, ticks) for f in families}
+    served = with_skill_families({"families": families}, tasks)["families"]
+    recorded = {row["task"] for row in Dataset(request["data"]).episodes()}
+    measured = measure_objects(locator, normalizer, request["data"],
+                               [f for f in served if f in families or f in recorded], ticks)
     return {"families": families, "stage": 1, "ticks": ticks,
             "measured": {"data": str(request["data"]), "content_hash": Dataset(request["data"]).content_hash(),
                          "by_family": measured},

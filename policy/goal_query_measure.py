@@ -124,6 +124,17 @@ def measure_object(locator, normalizer, data, family: str = "drawer_put", stage:
             "release_cm_median": cm(release_err, 50), "release_cm_p75": cm(release_err, 75)}
 
 
+def measure_objects(locator, normalizer, data, families, ticks: int = 3, embedder=None) -> dict:
+    """measure_object for each of `families` at the grasp cycle its object is taken in (datagen.views_stages
+    .OBJECT_AT_START: drawer_put's second, drawer_stow's first): {family: its figures}."""
+    from datagen.views_stages import OBJECT_AT_START
+
+    unknown = [f for f in families if f not in OBJECT_AT_START]
+    if unknown:
+        raise ValueError(f"the object locator answers {', '.join(OBJECT_AT_START)}, not {', '.join(unknown)}")
+    return {f: measure_object(locator, normalizer, data, f, OBJECT_AT_START[f], ticks, embedder) for f in families}
+
+
 def _asked_from_look(locator, meta: dict, look, text: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """(the locator's grasp points (1, 3) TCP-relative over AUX_TCP_SCALE, the TCP poses (1, 9)) for the recorded
     episode `meta`'s scene seen from the look pose, through the graph the bundle exports (LocatorGraph)."""

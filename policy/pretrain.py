@@ -168,8 +168,9 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
     release point as the grasp label and the loss on that point alone; validated by the goal query's error on
     --data's episodes (which the views never showed), before and during training, in place of the head's.
     locator_question: with goal_locator, "object" teaches the object question instead (policy/goal_locator.py:
-    drawer_put's object and drop from the start, on `sudd views --at-home` views; the loss on the grasp and release
-    points, validated by policy.goal_query_measure.measure_object on --data's drawer_put episodes).
+    drawer_put's and drawer_stow's object and drop from the start, on `sudd views --at-home` views; the loss on the
+    grasp and release points, validated by policy.goal_query_measure.measure_objects on --data's episodes of the
+    views' families).
     from_locator: with goal_locator and a bundle as init_from, start from the bundle's own locator of that question
     (rebuilt from its graph) instead of its policy's encoders and head.
     """
@@ -320,9 +321,10 @@ def pretrain(views_dir: str | Path | list, data_dir: str | Path, config: str | P
 
 def _locator_check(question: str, normalizer, data_dir, families: list[str], embedder, look=None, period=None):
     """model -> the validation row of a locator of `question`: the goal query's error on --data's episodes
-    (goal_cm_*), the object locator's grasp and release errors on its drawer_put episodes (object_*_cm_*), or the
-    turn locator's error on its family's recorded frames before the first close (turn_deg_*)."""
-    from policy.goal_query_measure import measure, measure_object
+    (goal_cm_*), the object locator's grasp and release errors on the episodes of its views' families (object_*_cm_*
+    for the first, object_FAMILY_*_cm_* for the others), or the turn locator's error on its family's recorded frames
+    before the first close (turn_deg_*)."""
+    from policy.goal_query_measure import measure, measure_objects
 
     if question == "turn":
         from policy.turn_query_measure import measure_turn
@@ -337,6 +339,10 @@ def _locator_check(question: str, normalizer, data_dir, families: list[str], emb
             q = measure(m.eval(), normalizer, data_dir, families, embedder=embedder, look=look)["measured"]
             return {"goal_cm_median": q["release_cm_median"], "goal_cm_p75": q["release_cm_p75"]}
         return check
-    family = families[0].partition("/")[0]
-    return lambda m: {f"object_{k}": v for k, v in measure_object(m.eval(), normalizer, data_dir, family,
-                                                                  embedder=embedder).items() if k != "episodes"}
+    object_families = sorted({f.partition("/")[0] for f in families})
+
+    def check_objects(m) -> dict:  # the first family's figures as object_*, each other's as object_FAMILY_*
+        by_family = measure_objects(m.eval(), normalizer, data_dir, object_families, embedder=embedder)
+        return {f"object_{'' if i == 0 else f + '_'}{k}": v for i, (f, q) in enumerate(by_family.items())
+                for k, v in q.items() if k != "episodes"}
+    return check_objects

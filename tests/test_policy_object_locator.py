@@ -25,14 +25,16 @@ CLOSED = ((3, 8), (12, 17), (21, 26))  # drawer_put's three grasp cycles: the ha
 COMMAND = "put the red block in the drawer"
 
 
-def _drawer_put_data(root, episodes: int = 4):
-    """Smooth synthetic drawer_put episodes (all successful) that close the gripper three times."""
+def _drawer_put_data(root, episodes: int = 4, stows: int = 0):
+    """Smooth synthetic drawer_put episodes (all successful) that close the gripper three times, then `stows`
+    drawer_stow episodes that close it once (drawer_put's middle cycle's steps)."""
     with ShardWriter(root, "w0") as w:
-        for seed in range(episodes):
-            ep = synthetic_episode("drawer_put", seed, steps=30)
+        for seed in range(episodes + stows):
+            task = "drawer_put" if seed < episodes else "drawer_stow"
+            ep = synthetic_episode(task, seed, steps=30)
             smooth_episode(ep, seed)
             grip = np.zeros(len(ep.action), np.float32)
-            for a, b in CLOSED:
+            for a, b in CLOSED if task == "drawer_put" else CLOSED[1:2]:
                 grip[a:b] = 1.0
             ep.action[:, -1], ep.proprio[:, 9] = grip, np.roll(grip, 1)
             ep.meta.update(success=True, instruction=COMMAND, label={"success": True, "source": "synthetic"})
@@ -41,14 +43,15 @@ def _drawer_put_data(root, episodes: int = 4):
 
 
 def test_object_rows_keep_each_scenes_first_at_home_view_of_a_later_stage_as_labelled():
-    n = 6
-    v = {"seed": np.array([1, 1, 2, 2, 3, 3]), "task": np.array(["drawer_put"] * n),
-         "stage": np.array(["object", "object", "object", "object", "", ""]),
-         "at_home": np.array([True, True, False, False, False, False]),
+    n = 8
+    v = {"seed": np.array([1, 1, 2, 2, 3, 3, 4, 4]), "task": np.array(["drawer_put"] * 6 + ["drawer_stow"] * 2),
+         "stage": np.array(["object", "object", "object", "object", "", "", "", ""]),
+         "at_home": np.array([True, True, False, False, False, False, True, True]),
          "instruction": np.array([COMMAND] * n), "points": np.arange(n * 6, dtype=np.float32).reshape(n, 2, 3)}
     out = locator_rows(v, "object")
-    assert out["seed"].tolist() == [1] and out["instruction"].tolist() == [COMMAND]  # the command as it is
-    np.testing.assert_array_equal(out["points"], v["points"][:1])  # the object and the drop, not swapped
+    # drawer_put's object stage at home, and drawer_stow's first grasp at home (its object where it starts)
+    assert out["seed"].tolist() == [1, 4] and out["instruction"].tolist() == [COMMAND] * 2  # the command as it is
+    np.testing.assert_array_equal(out["points"], v["points"][[0, 6]])  # the object and the drop, not swapped
     with pytest.raises(ValueError, match="--at-home"):
         locator_rows({**v, "at_home": np.zeros(n, bool)}, "object")
     with pytest.raises(ValueError, match="expected one of goal, object"):
@@ -69,7 +72,7 @@ def object_located(tmp_path_factory):
     from policy.train import train
 
     root = tmp_path_factory.mktemp("object_locator")
-    data = _drawer_put_data(root / "data")
+    data = _drawer_put_data(root / "data", stows=2)
     train(data, dict(TINY), root / "run", steps=4, embedder=hash_embedder, progress=False, threads=1,
           overrides=SHIPPED_LIKE)
     export(root / "run", root / "plain", cache_dir=CACHE)
@@ -79,6 +82,8 @@ def object_located(tmp_path_factory):
              stage="object", at_home=True)
     generate(root / "views", range(700, 702), 2, offsets, progress=False, image_size=size, task="drawer_put",
              stage="object")  # on the way from the handle: not the question's views
+    generate(root / "views", range(710, 712), 1, offsets, progress=False, image_size=size, task="drawer_stow",
+             at_home=True)  # drawer_stow's object from its start: the drawer open, the same question
     summary = pretrain(root / "views", data, root / "plain", root / "locator", 6,
                        {"lr": 3e-3, "warmup_steps": 1, "val_every": 3, "log_every": 3}, threads=1, progress=False,
                        embedder=hash_embedder, init_from=root / "plain", goal_locator=True,
@@ -88,12 +93,13 @@ def object_located(tmp_path_factory):
 
 def test_pretraining_an_object_locator_trains_the_grasp_and_release_points_on_at_home_views(object_located):
     root, _, s = object_located
-    assert s["views"] == 3 and s["scenes"] == 3  # the first at-home view of each scene, nothing else
+    assert s["views"] == 5 and s["scenes"] == 5  # the first at-home view of each scene, nothing else
     pre = json.loads((root / "locator" / "dataset.json").read_text())["pretrain"]
     assert pre["goal_locator"] is True and pre["locator_question"] == "object"
     rows = [json.loads(x) for x in (root / "locator" / "metrics.jsonl").read_text().splitlines()]
     checks = [r for r in rows if "object_grasp_cm_median" in r]
     assert [r["step"] for r in checks] == [0, 3, 6] and s["validation"]["step"] == 6
+    assert all(np.isfinite(r["object_drawer_stow_grasp_cm_median"]) for r in checks)  # each family measured
     assert all(np.isfinite(r["object_release_cm_p75"]) for r in checks)
     from policy.bundle_import import model_from_bundle
 
@@ -139,6 +145,29 @@ def test_the_object_measure_scores_the_first_frames_against_the_middle_cycle(obj
     assert got["episodes"] == 4
     assert got["grasp_cm_median"] == pytest.approx(100 * np.median(grasp), abs=0.01)
     assert got["release_cm_median"] == pytest.approx(100 * np.median(release), abs=0.01)
+
+
+def test_drawer_stows_object_is_measured_on_its_first_and_only_cycle(object_located, tmp_path):
+    from policy.goal_query_measure import measure_objects
+    from policy.normalize import Normalizer
+    from datagen.store import Dataset
+
+    root, _, _ = object_located
+    data = _drawer_put_data(tmp_path / "data", episodes=2, stows=3)
+    loc, _, _ = load_run_model(root / "locator")
+    norm = Normalizer.load(root / "locator" / "stats.npz")
+    got = measure_objects(_Zero(loc.cfg), norm, data, ["drawer_put", "drawer_stow"], ticks=1,
+                          embedder=hash_embedder)
+    store = Dataset(data)
+    grasp = {"drawer_put": [], "drawer_stow": []}
+    for row in store.episodes():
+        w = store.window(row["index"], fields=("action", "proprio"))
+        grasp[row["task"]].append(np.linalg.norm(w["proprio"][0, :3] - w["action"][CLOSED[1][0], :3]))
+    assert got["drawer_put"]["episodes"] == 2 and got["drawer_stow"]["episodes"] == 3
+    for family, errors in grasp.items():
+        assert got[family]["grasp_cm_median"] == pytest.approx(100 * np.median(errors), abs=0.01)
+    with pytest.raises(ValueError, match="answers drawer_put, drawer_stow, not stack"):
+        measure_objects(_Zero(loc.cfg), norm, data, ["stack"], ticks=1, embedder=hash_embedder)
 
 
 def test_located_points_hold_the_median_of_the_first_answers_and_replace_the_middle_cycle_only(object_located):
@@ -192,8 +221,10 @@ def test_the_export_records_the_object_query_and_its_graphs(object_bundle):
 
     m = json.loads((object_bundle / "bundle" / "manifest.json").read_text())
     q = m["object_query"]
-    assert q["families"] == ["drawer_put"] and q["stage"] == 1 and q["ticks"] == 2
-    assert q["measured"]["by_family"]["drawer_put"]["episodes"] == 4
+    assert q["families"] == ["drawer_put", "drawer_stow"] and q["stage"] == 1 and q["ticks"] == 2
+    assert q["family_stage"] == {"drawer_stow": 0}  # drawer_put's middle phase, served in its first cycle
+    by_family = q["measured"]["by_family"]
+    assert by_family["drawer_put"]["episodes"] == 4 and by_family["drawer_stow"]["episodes"] == 2
     assert q["locator_from"]["locator_question"] == "object"
     assert m["grasp_input"] is True and m["release_input"] is True
     assert [i["name"] for i in m["graphs"]["obs_encoder"]["inputs"]][-2:] == ["release_point", "grasp_point"]

@@ -63,8 +63,28 @@ def test_at_home_object_views_show_the_start_with_the_object_stages_labels():
     np.testing.assert_allclose(home["proprio"][0], first["proprio"][0], atol=1e-6)  # the arm at home
     assert np.array_equal(home["scene"][0], first["scene"][0])  # and the drawer shut: the start's very image
     assert not np.array_equal(home["scene"][0], later["scene"][0])
-    with pytest.raises(ValueError, match="at_home views label a later grasp"):
+    with pytest.raises(ValueError, match="at_home views label an object's grasp"):
         scene_views(SEED, 1, off, image_size=SIZE, task="drawer_put", stage="close", at_home=True)
+    with pytest.raises(ValueError, match="at_home views label an object's grasp"):
+        scene_views(SEED, 1, off, image_size=SIZE, task="drawer_put", at_home=True)  # the handle's grasp
+
+
+def test_drawer_stows_views_label_the_object_and_the_open_drawers_floor_from_the_start():
+    off = {"grasp": np.array([0.0, 0.0, 0.007]), "release": np.array([0.0, 0.0, 0.12])}
+    home = scene_views(SEED, 2, off, image_size=SIZE, task="drawer_stow", at_home=True)
+    plain = scene_views(SEED, 2, off, image_size=SIZE, task="drawer_stow")
+    ep = build_episode("drawer_stow", SEED, "heavy", "fast")
+    state = StateView(ep.world)
+    assert state.joint_fraction(SLIDE) > 0.8  # the drawer open from the start: nothing to set
+    R = state.rotation(CABINET)
+    obj = state.position(ep.instance.params["target"])
+    np.testing.assert_allclose(home["points"][:, 0], np.broadcast_to(obj + R @ off["grasp"], (2, 3)), atol=1e-5)
+    np.testing.assert_allclose(home["points"][:, 1], np.broadcast_to(drop_point(ep) + R @ off["release"], (2, 3)),
+                               atol=1e-5)
+    # the same scene and the same first view as the first grasp's own views; only the flag tells the question
+    assert home["at_home"].all() and not plain["at_home"].any() and home["stage"] == [""] * 2
+    assert np.array_equal(home["scene"][0], plain["scene"][0])
+    np.testing.assert_allclose(home["points"], plain["points"], atol=1e-6)
 
 
 def test_the_close_stage_puts_the_object_in_the_open_drawer_and_labels_the_handle_to_push_shut():
