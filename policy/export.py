@@ -59,7 +59,7 @@ from policy.model import DiffusionPolicy, count_params, film_dim
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
 from policy.phased import check_phased
-from policy.object_query import with_skill_families
+from policy.object_query import check_release_shift, with_skill_families
 from policy.turn_query_measure import turn_query_table
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
@@ -79,7 +79,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            text_encoder_from: str | Path | None = None, pace: dict[str, float] | None = None,
            goal_query: dict | None = None, goal_locator: str | Path | None = None,
            object_query: dict | None = None, phased: list[str] | None = None,
-           queries_from: str | Path | None = None, turn_locator: str | Path | None = None) -> dict:
+           queries_from: str | Path | None = None, turn_locator: str | Path | None = None,
+           object_release_shift: tuple[float, float, float] | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -105,7 +106,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     other one is kept and that one measured anew (e.g. a new goal locator beside the bundle's object locator).
     turn_locator: a `sudd pretrain --turn-locator` run (policy/turn_query.py), exported as turn_locator.onnx; its
     table records the run's own check (on the run's --data). A bundle's turn query is kept by `queries_from` like
-    the others."""
+    the others.
+    object_release_shift: (dx, dy, dz) metres added to the object query's release point
+    (policy.object_query, `release_shift_m`); default a kept query's own, a measured one's none."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -180,6 +183,11 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         turn_table, turn_model = turn_query_table(turn_locator, model.cfg, data_info.get("tasks", []))
     if object_table is not None:  # kept or measured, it serves the skill families of the ones it serves
         object_table = with_skill_families(object_table, data_info.get("tasks", []))
+        if object_release_shift is not None:
+            object_table["release_shift_m"] = list(check_release_shift(object_release_shift, "--object-release-shift"))
+    elif object_release_shift is not None:
+        raise ValueError("--object-release-shift moves the object query's release point, and this export has no "
+                         "object query: give --object-query (or --queries-from a bundle that asks one)")
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,

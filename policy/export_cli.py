@@ -78,6 +78,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="episodes the object locator's error is measured on: data the policy did not train on")
     ex.add_argument("--object-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --object-locator` run it asks; exported as object_locator.onnx")
+    ex.add_argument("--object-release-shift", default=None, metavar="DX,DY,DZ",
+                    help="metres (base frame, each within 0.1) added to the point the object locator gives as where "
+                         "the object goes (policy/object_query.py): e.g. 0,-0.03,0 moves the drop 3 cm towards the "
+                         "robot, out from under the cabinet's top; measure it with `sudd eval`. Default: a kept "
+                         "query's own (--queries-from), none for one measured anew")
     ex.add_argument("--turn-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --turn-locator` run the turn query asks on the way to the grasp (how far "
                          "the wrist turns to grasp square to the object, policy/turn_query.py); exported as "
@@ -120,7 +125,8 @@ def _export(args) -> int:
                       noise_scale=args.noise_scale, text_encoder_from=args.text_encoder_from,
                       pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
                       goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased),
-                      queries_from=args.queries_from, turn_locator=args.turn_locator)
+                      queries_from=args.queries_from, turn_locator=args.turn_locator,
+                      object_release_shift=_release_shift_option(args.object_release_shift))
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
@@ -144,6 +150,10 @@ def _export(args) -> int:
             for family, q in manifest["object_query"]["measured"]["by_family"].items():
                 print(f"object query ({family}, {q['episodes']} episodes): the object {q['grasp_cm_median']:.1f} cm "
                       f"off, where it goes {q['release_cm_median']:.1f} cm (medians, asked at the start)")
+            shift = manifest["object_query"].get("release_shift_m")
+            if shift:
+                print("object query: where it goes moved by " + ", ".join(f"{100 * v:+.1f}" for v in shift)
+                      + " cm (x, y, z; base frame)")
     from policy.sensitivity import record_in_manifest
 
     record_in_manifest(Path(args.out), manifest, quiet=args.json)
@@ -154,6 +164,12 @@ def _phased_option(given: list[str] | None) -> list[str] | None:
     if given is None:
         return None
     return [] if given == ["none"] else given
+
+
+def _release_shift_option(text: str | None) -> tuple[float, float, float] | None:
+    from policy.object_query import parse_release_shift
+
+    return None if text is None else parse_release_shift(text)
 
 
 def _pace_option(spec: str) -> dict[str, float]:

@@ -35,24 +35,35 @@ MAX_TICKS = 20
 MAX_LOOK_M = 0.3  # per axis: a look pose further from home than this is no glance from the start
 
 
-def check_look(look, where: str = "look") -> tuple[float, float, float]:
-    """A look offset (dx, dy, dz) from the start pose's TCP, base frame [m], checked: 3 finite numbers, each
-    within MAX_LOOK_M; a ValueError names `where`."""
-    ok = (isinstance(look, (list, tuple)) and len(look) == 3 and all(isinstance(v, (int, float)) for v in look)
-          and bool(np.all(np.isfinite(look))) and max(abs(float(v)) for v in look) <= MAX_LOOK_M)
+def check_xyz(values, where: str, limit: float, meaning: str) -> tuple[float, float, float]:
+    """An offset (dx, dy, dz) in metres checked: 3 finite numbers, each within `limit`; a ValueError names `where`
+    and says what the offset is (`meaning`, e.g. "from the start pose")."""
+    ok = (isinstance(values, (list, tuple)) and len(values) == 3
+          and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+          and bool(np.all(np.isfinite(values))) and max(abs(float(v)) for v in values) <= limit)
     if not ok:
-        raise ValueError(f"{where} {look!r}: expected 3 finite numbers dx, dy, dz in metres from the start pose, "
-                         f"each within {MAX_LOOK_M} m")
-    return tuple(float(v) for v in look)
+        raise ValueError(f"{where} {values!r}: expected 3 finite numbers dx, dy, dz in metres {meaning}, "
+                         f"each within {limit} m")
+    return tuple(float(v) for v in values)
+
+
+def parse_xyz(text: str, option: str, limit: float, meaning: str, example: str) -> tuple[float, float, float]:
+    """"DX,DY,DZ" (metres) given to `option` -> a checked offset (check_xyz)."""
+    try:
+        values = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        raise ValueError(f"{option} {text!r}: expected three numbers DX,DY,DZ in metres, e.g. {example}") from None
+    return check_xyz(values, option, limit, meaning)
+
+
+def check_look(look, where: str = "look") -> tuple[float, float, float]:
+    """A look offset (dx, dy, dz) from the start pose's TCP, base frame [m], checked (check_xyz)."""
+    return check_xyz(look, where, MAX_LOOK_M, "from the start pose")
 
 
 def parse_look(text: str) -> tuple[float, float, float]:
     """"DX,DY,DZ" (metres) -> a checked look offset (check_look)."""
-    try:
-        values = [float(v) for v in str(text).split(",")]
-    except ValueError:
-        raise ValueError(f"--look {text!r}: expected three numbers DX,DY,DZ in metres, e.g. 0.15,0.08,0.1") from None
-    return check_look(values, "--look")
+    return parse_xyz(text, "--look", MAX_LOOK_M, "from the start pose", "0.15,0.08,0.1")
 
 
 def _phrase_after_article(words: list[str]) -> int | None:

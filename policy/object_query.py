@@ -12,6 +12,15 @@ at-home views of the object stage) is asked the command on the first `ticks` inf
 answers (base frame) is held and given as the grasp and release points (`Bundle.act(grasp=..., release=...)`)
 while the grasp cycles counted since the start (policy/stage.py) equal `stage`; the other cycles keep the head's.
 
+The release point given is the locator's plus the manifest's `release_shift_m` (base frame, default none). Why:
+the locator is taught the middle of the drawer's cavity (datagen.view_anchors.drop_point), which with the drawer
+85-100 % open lies only 1.7-4 cm in front of the cabinet; the collector reaches down into it, but the policy lets
+go over the rim, and a release 2-3 cm behind its aim holds the object over the cabinet's top, where the object
+lands (drawer_stow seed 100562: the fingers' opening held 8 s by the top's keep-out box, then the object rested on
+the top). The drawers of the scenes the bundle learned open towards the robot (-y), so a shift that way moves the
+release over the open part; measured in closed loop, `sudd export --object-release-shift` records it
+(policy/EXPERIMENTS.md, "The drop moved out from under the cabinet's top").
+
 Torch-free: the runtime's policy node and `sudd eval` use it through the bundle; `sudd export ... --object-query
 FAMILY --object-query-data DATA --object-locator RUN` measures and records it (the manifest's `object_query`).
 """
@@ -22,9 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from policy.goal_query import query_table
+from policy.goal_query import check_xyz, parse_xyz, query_table
 
 MAX_TICKS = 20
+MAX_SHIFT_M = 0.1  # per axis: a release shift further than this is no nudge over the drawer's open part
 
 
 @dataclass(frozen=True)
@@ -38,6 +48,7 @@ class ObjectQuerySpec:
     # A family whose object grasp comes at another cycle: drawer_stow takes its object first (0), as drawer_put's
     # middle phase that it is (runtime/phases.py), where drawer_put takes it after the handle (1).
     family_stage: tuple[tuple[str, int], ...] = ()
+    release_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)  # added to the locator's release point [m]
 
     def stage_of(self, family: str | None) -> int:
         return dict(self.family_stage).get(family, self.stage)
@@ -60,7 +71,19 @@ def object_query_spec(manifest: dict) -> ObjectQuerySpec | None:
                                                 and not isinstance(k, bool) for f, k in by_family.items())):
         raise ValueError(f"manifest object_query.family_stage {by_family!r}: expected a table of its families to "
                          "the grasp cycle each is served in, integers in [0, 8] (drawer_stow's object: 0)")
-    return ObjectQuerySpec(tuple(families), stage, ticks, tuple(sorted(by_family.items())))
+    shift = q.get("release_shift_m", [0.0, 0.0, 0.0])
+    return ObjectQuerySpec(tuple(families), stage, ticks, tuple(sorted(by_family.items())),
+                           check_release_shift(shift, "manifest object_query.release_shift_m"))
+
+
+def check_release_shift(shift, where: str) -> tuple[float, float, float]:
+    """A release shift (dx, dy, dz) in metres, base frame, checked (policy.goal_query.check_xyz)."""
+    return check_xyz(shift, where, MAX_SHIFT_M, "(base frame)")
+
+
+def parse_release_shift(text: str) -> tuple[float, float, float]:
+    """"DX,DY,DZ" (metres) -> a checked release shift."""
+    return parse_xyz(text, "--object-release-shift", MAX_SHIFT_M, "(base frame)", "0,-0.03,0")
 
 
 def with_skill_families(table: dict, tasks) -> dict:
@@ -103,4 +126,5 @@ class ObjectQuery:
             return {}
         flag = np.ones((2, 1), np.float32)
         grasp, release = np.hstack([self.points.astype(np.float32), flag])
+        release[:3] += np.asarray(self.spec.release_shift, np.float32)
         return {"grasp": grasp, "release": release}
