@@ -51,7 +51,8 @@ import torch
 
 from policy.bundle import sha256_file
 from policy.config import TEXT_DIM
-from policy.export_graphs import OPSET, _onnx_export, _rounded, _write_locator, graph_specs, write_policy_graphs  # noqa: F401
+from policy.export_graphs import (OPSET, _onnx_export, _rounded, _write_locator, graph_specs,  # noqa: F401
+                                  write_policy_graphs)
 from policy.goal_locator import GRAPH as LOCATOR_GRAPH
 from policy.goal_locator import OBJECT_GRAPH, TURN_GRAPH, load_locator, object_query_table
 from policy.goal_locator import graph_spec as locator_spec
@@ -152,7 +153,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
                  if v is not None}
     table, locator = None, None
     if goal_locator is not None and goal_query is None:
-        raise ValueError("--goal-locator is what the goal query asks: give --goal-query FAMILY and --goal-query-data too")
+        raise ValueError("--goal-locator is what the goal query asks: give --goal-query FAMILY and --goal-query-data "
+                         "too")
     if goal_query is not None:
         from policy.goal_query_measure import measure
 

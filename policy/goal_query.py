@@ -12,10 +12,11 @@ sim's true point gave an earlier run 10/20; policy/EXPERIMENTS.md, "The goal que
 
 How: per command of a family the bundle's manifest lists (`goal_query`), `role_swap` exchanges the object phrase
 before the goal clause with the one in it; for the first `ticks` inferences the head reads the swapped sentence
-(obs_encoder.onnx with its release flag off, or the bundle's goal locator, policy/goal_locator.py, where it has one), and the median of its grasp points, in the base frame, plus
-`offset_m` is held for the rest of the command and given to every inference as the release point
-(`Bundle.act(release=...)`): the object is on the table at rest at the start, and later frames (the arm over it,
-an object in the fingers) are not scenes the swapped sentence was trained on (measured: 13 cm off while carrying).
+(obs_encoder.onnx with its release flag off, or the bundle's goal locator, policy/goal_locator.py, where it has
+one), and the median of its grasp points, in the base frame, plus `offset_m` is held for the rest of the command
+and given to every inference as the release point (`Bundle.act(release=...)`): the object is on the table at rest
+at the start, and later frames (the arm over it, an object in the fingers) are not scenes the swapped sentence was
+trained on (measured: 13 cm off while carrying).
 
 Torch-free: the runtime's policy node and `sudd eval` use it through the bundle. The offset is measured when the
 bundle is exported (policy/goal_query_measure.py) and recorded with it.
@@ -147,7 +148,8 @@ def goal_query_spec(manifest: dict) -> GoalQuerySpec | None:
         raise ValueError(f"manifest goal_query.ticks {ticks!r}: expected an integer in [1, {MAX_TICKS}]")
     locator = q.get("locator", False)
     if not isinstance(locator, bool):
-        raise ValueError(f"manifest goal_query.locator {locator!r}: expected true (asked of goal_locator.onnx) or false")
+        raise ValueError(f"manifest goal_query.locator {locator!r}: expected true (asked of goal_locator.onnx) or "
+                         "false")
     look = q.get("look_m")
     if look is not None:
         look = check_look(look, "manifest goal_query.look_m")
