@@ -46,6 +46,7 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
                       goal_query=settings["goal_query"], phases=task in settings["phases"],
                       served_pause=settings.get("served_pause", True),
                       finger_wait=settings.get("finger_wait", True),
+                      grasp_steer=settings.get("grasp_steer", True),
                       controller=controller, holdout_colors=tuple(h["colors"]), holdout_shapes=tuple(h["shapes"]),
                       holdout_split=split)
     seen: set[str] = set()

@@ -74,6 +74,7 @@ class EpisodeOutcome:
     speed: float = 1.0  # the pace the chunks were played at (policy.pace)
     pauses_served: int = 0  # chunks played from where they move, the arm having held their pause (served_pause)
     finger_waits: int = 0  # chunks replaced by a hold while the fingers still closed or opened (finger_wait)
+    grasp_steers: int = 0  # chunks moved over the located object after a close on nothing (grasp_steer)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
@@ -95,7 +96,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
-                       served_pause: bool = True, finger_wait: bool = True, trace=None) -> EpisodeOutcome:
+                       served_pause: bool = True, finger_wait: bool = True, grasp_steer: bool = True,
+                       trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
     inferences (1: every tick, as the policy node); `latency_s` fixes the simulated inference lag instead
@@ -106,8 +108,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `served_pause` False:
     every chunk played with its leading pause (runtime/served_pause.py); `finger_wait` False: the arm follows
-    the chunks while the fingers still close or open (runtime/finger_wait.py); `trace` a runtime.eval_trace.Trace to
-    record every tick, chunk and event in."""
+    the chunks while the fingers still close or open (runtime/finger_wait.py); `grasp_steer` False: a retry after
+    a close on nothing is not moved over the located object (runtime/grasp_steer.py); `trace` a
+    runtime.eval_trace.Trace to record every tick, chunk and event in."""
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
@@ -116,6 +119,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
     from runtime.finger_wait import FingerWait
+    from runtime.grasp_steer import GraspSteer
     from runtime.look import Look
     from runtime.phases import Sequencer
     from runtime.served_pause import ServedPause
@@ -136,6 +140,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     turn = TurnQuery(bundle, text, task, enabled=goal_query)
     pause = ServedPause(enabled=served_pause)
     wait = FingerWait(enabled=finger_wait)
+    regrasp = GraspSteer(enabled=grasp_steer)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -178,6 +183,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
+                regrasp.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], stage, rig.world.time)
                 if sequencer is not None and sequencer.update(stage, proprio[-1]):  # the next skill: text, pace
                     out.phase, emb = sequencer.index, sequencer.embedding
                     out.phase_starts.append(round(float(rig.world.time), 2))
@@ -199,6 +205,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                                               speed=1e9 / (dt_ns * control_hz))
                         actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
                                         dt_ns * 1e-9)
+                        actions = regrasp.chunk(actions, objects, stage, rig.world.gripper_command(), dt_ns * 1e-9)
                         actions = wait.chunk(actions, proprio[-1], t_obs * 1e-9)
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
@@ -223,6 +230,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.grasp_cycles = cycles.count
         out.pauses_served = pause.trimmed
         out.finger_waits = wait.held
+        out.grasp_steers = regrasp.steered
         if sequencer is not None:
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:

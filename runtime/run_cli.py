@@ -203,7 +203,7 @@ def _run(args) -> int:
             if msg.kind == "task_success":
                 succeeded["v"] = True
             if msg.severity in ("warning", "error", "critical") or msg.kind.startswith(("command", "task")) \
-                    or msg.kind in ("policy_phase", "policy_goal_point", "policy_look"):  # the skill; the goal
+                    or msg.kind in ("policy_phase", "policy_goal_point", "policy_look", "policy_grasp_steer"):
                 print(f"[{msg.severity}] {msg.kind}: {msg.message}", file=sys.stderr)
 
         la.bus.subscribe(B.SAFETY_EVENT, on_event)

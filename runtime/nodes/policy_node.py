@@ -77,6 +77,9 @@ class PolicyNodeConfig:
     # Hold the arm where it is while the fingers still close or open as the chunk asks (runtime/finger_wait.py):
     # the collector's fingers shut in 0.1 s, the gripper's take 0.65 s; false: follow the chunks regardless.
     finger_wait: bool = True
+    # After a close on nothing, move the policy's next approach over the object the object query located
+    # (runtime/grasp_steer.py): the denoiser hardly follows the grasp point it is given; false: the policy's own.
+    grasp_steer: bool = True
 
 
 CONFIG = PolicyNodeConfig
@@ -160,6 +163,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
     from runtime.finger_wait import FingerWait
+    from runtime.grasp_steer import GraspSteer
     from runtime.served_pause import ServedPause
     from runtime.wrist_turn import steer
     from runtime import messages as m
@@ -241,6 +245,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current["turn"] = TurnQuery(bundle, text, task, enabled=cfg.goal_query)
                     current["pause"] = ServedPause(enabled=cfg.served_pause)
                     current["wait"] = FingerWait(enabled=cfg.finger_wait)
+                    current["regrasp"] = GraspSteer(enabled=cfg.grasp_steer)
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -296,6 +301,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     t0 = time.perf_counter()
                     # g: the newest step's (position, request), as training counts from the recorded steps
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
+                    current["regrasp"].update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN], stage, t_obs * 1e-9)
                     prop = np.asarray(prop, np.float32)
                     seq = current["phases"]
                     if seq is not None and seq.update(stage, prop[-1]):  # the next skill: its text, its pace
@@ -324,6 +330,11 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                        speed=1e9 / (dt_ns * data_hz))
                             turn, sure = current["turn"], current["turn"].sure
                             a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
+                            regrasp, steered = current["regrasp"], current["regrasp"].steered
+                            a = regrasp.chunk(a, objects, stage, request, dt_ns * 1e-9)
+                            if regrasp.steered and not steered:  # the first steer of the command
+                                event("policy_grasp_steer", "info", "the fingers closed on nothing: the retry is "
+                                      "moved over the object the object query located")
                             a = current["wait"].chunk(a, prop[-1], t_obs * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
                                 deg = float(np.degrees(turn.turn))
