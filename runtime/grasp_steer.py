@@ -3,9 +3,9 @@ object query located (policy/object_query.py), for as long as that query serves 
 
 Why: the denoiser hardly follows the grasp point it is given (the bundle's `grasp_gain`: 0.1 cm per cm, against 0.7
 for the release point), so a policy that misses a cylinder misses it again at the same place: drawer_stow seed
-100600 closed six times 6.5 cm beyond the cylinder while the object locator's answer lay 0.5 cm from it. Of step 36's
-200 drawer_stow episodes on seeds 100500-100699, 21 closed on nothing at least once and 17 of those failed
-(policy/EXPERIMENTS.md, "The grasp steer"). A first grasp is left to the policy (the locator is off by more than
+100600 closed three times 6.5-7.3 cm from the cylinder while the object locator's answer lay 0.5 cm from it. Of
+step 36's 200 drawer_stow episodes on seeds 100500-100699, 21 closed on nothing at least once and 17 of those
+failed (policy/EXPERIMENTS.md, "The grasp steer"). A first grasp is left to the policy (the locator is off by more than
 3.8 cm in one episode in ten); a retry is where the policy has shown it is off.
 
 How: fed the gripper's position request and measured closure each tick, it notes a miss: a close (request at or
