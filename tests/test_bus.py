@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import queue
 import threading
 import time
 
@@ -262,14 +263,23 @@ def test_subscriber_in_another_process():
             assert ready.wait(30), "child did not start"
             pub = bus.publisher(b.ARM_STATE)
             assert pub.wait_matched(10)
-            for i in range(3):
+            # The arm's state is sent with congestion control "drop" (runtime/bus_topics.py): on a loaded machine a
+            # state may be dropped, as on a robot's bus, so the stream runs until the child has three.
+            got, i = None, 0
+            while got is None and i < 2000:
                 pub.publish(state(i))
-            got = out.get(timeout=25)
+                i += 1
+                try:
+                    got = out.get(timeout=0.01)
+                except queue.Empty:
+                    pass
         finally:
             proc.join(10)
             if proc.is_alive():
                 proc.kill()
-    assert [s for s, _ in got] == [1, 2, 3] and got[2][1] == (V + 2).tolist()
+    seqs = [s for s, _ in got]
+    assert len(seqs) == 3 and seqs == sorted(set(seqs)) and seqs[0] >= 1  # in order, none twice
+    assert all(q == (V + (s - 1)).tolist() for s, q in got)  # each state decoded whole in the other process
     assert proc.exitcode == 0
 
 

@@ -35,6 +35,10 @@ from sim.devices import (  # noqa: E402
     StaleFrameError,
 )
 
+# A controller twin keeps the robot's clock in another process: run alone, not beside other tests (`make test` runs
+# the realtime tests after the rest; under a second loaded worker a 500 Hz servo stream missed its period).
+pytestmark = pytest.mark.realtime
+
 
 @dataclass
 class Bench:

@@ -20,6 +20,10 @@ from hil_tests.fakes.robotiq_server import FakeRobotiqServer  # noqa: E402
 from runtime.drivers.robotiq import GripperStateError, Robotiq2F85, RobotiqConfig, RobotiqProtocolError  # noqa: E402
 from sim.devices import GripperDriver  # noqa: E402
 
+# A controller twin keeps the robot's clock in another process: run alone, not beside other tests (`make test` runs
+# the realtime tests after the rest; under a second loaded worker a 500 Hz servo stream missed its period).
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture
 def server():

@@ -27,6 +27,10 @@ from runtime.drivers.ur_rtde_arm import ClockMap, URRtdeArm, URRtdeConfig  # noq
 from runtime.drivers.ur_version import frequency_for_version  # noqa: E402
 from sim.devices import ArmDriver, SafetyMode  # noqa: E402
 
+# A controller twin keeps the robot's clock in another process: run alone, not beside other tests (`make test` runs
+# the realtime tests after the rest; under a second loaded worker a 500 Hz servo stream missed its period).
+pytestmark = pytest.mark.realtime
+
 needs_ur_rtde = pytest.mark.skipif(importlib.util.find_spec("rtde_control") is None,
                                    reason="ur_rtde is not installed (pip install ur-rtde)")
 
