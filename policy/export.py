@@ -60,7 +60,7 @@ from policy.model import DiffusionPolicy, count_params, film_dim
 from policy.normalize import STAT_KEYS, Normalizer
 from policy.pace import check_pace_table
 from policy.phased import check_phased
-from policy.object_query import check_release_shift, with_skill_families
+from policy.object_query import check_keep_release, check_release_shift, with_skill_families
 from policy.turn_query_measure import turn_query_table
 from policy.parity import check_parity, rounding_cost
 from policy.sampling import schedule_for
@@ -81,7 +81,8 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
            goal_query: dict | None = None, goal_locator: str | Path | None = None,
            object_query: dict | None = None, phased: list[str] | None = None,
            queries_from: str | Path | None = None, turn_locator: str | Path | None = None,
-           object_release_shift: tuple[float, float, float] | None = None) -> dict:
+           object_release_shift: tuple[float, float, float] | None = None,
+           object_keep_release: list[str] | None = None) -> dict:
     """Export a training run (latest checkpoint, EMA weights), or a bundle again (its weights rebuilt from its
     graphs, policy.bundle_import; its data, training and pace records kept), to a bundle directory; returns the
     manifest.
@@ -109,7 +110,9 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
     table records the run's own check (on the run's --data). A bundle's turn query is kept by `queries_from` like
     the others.
     object_release_shift: (dx, dy, dz) metres added to the object query's release point
-    (policy.object_query, `release_shift_m`); default a kept query's own, a measured one's none."""
+    (policy.object_query, `release_shift_m`); default a kept query's own, a measured one's none.
+    object_keep_release: the families whose grasp cycles after the object query's still get its drop point
+    (policy.object_query, `keep_release`); default a kept query's own, a measured one's none."""
     from policy.bundle_import import is_bundle
     from policy.config import load_policy_config
 
@@ -187,9 +190,13 @@ def export(run_dir: str | Path, out_bundle_dir: str | Path, checkpoint: str | Pa
         object_table = with_skill_families(object_table, data_info.get("tasks", []))
         if object_release_shift is not None:
             object_table["release_shift_m"] = list(check_release_shift(object_release_shift, "--object-release-shift"))
-    elif object_release_shift is not None:
-        raise ValueError("--object-release-shift moves the object query's release point, and this export has no "
-                         "object query: give --object-query (or --queries-from a bundle that asks one)")
+        if object_keep_release is not None:
+            object_table["keep_release"] = list(check_keep_release(object_keep_release, object_table["families"],
+                                                                   "--object-keep-release"))
+    elif object_release_shift is not None or object_keep_release is not None:
+        raise ValueError("--object-release-shift and --object-keep-release change the object query's release "
+                         "point, and this export has no object query: give --object-query (or --queries-from a "
+                         "bundle that asks one)")
     if overrides:
         model.cfg = load_policy_config(model.cfg, overrides)
     return export_model(model, normalizer, out_bundle_dir, data_info, training, opset, cache_dir, fp16_weights,

@@ -83,6 +83,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "the object goes (policy/object_query.py): e.g. 0,-0.03,0 moves the drop 3 cm towards the "
                          "robot, out from under the cabinet's top; measure it with `sudd eval`. Default: a kept "
                          "query's own (--queries-from), none for one measured anew")
+    ex.add_argument("--object-keep-release", default=None, metavar="FAMILY[,FAMILY]",
+                    help="families whose grasp cycles after the object query's still get its drop point, not its "
+                         "object point (policy/object_query.py): drawer_stow, where a later cycle takes the same "
+                         "object again after it fell elsewhere. Default: a kept query's own (--queries-from), none "
+                         "for one measured anew; '' for none")
     ex.add_argument("--turn-locator", type=Path, default=None, metavar="RUN",
                     help="the `sudd pretrain --turn-locator` run the turn query asks on the way to the grasp (how far "
                          "the wrist turns to grasp square to the object, policy/turn_query.py); exported as "
@@ -126,7 +131,9 @@ def _export(args) -> int:
                       pace=_pace_option(args.pace) if args.pace else None, goal_query=goal,
                       goal_locator=args.goal_locator, object_query=obj, phased=_phased_option(args.phased),
                       queries_from=args.queries_from, turn_locator=args.turn_locator,
-                      object_release_shift=_release_shift_option(args.object_release_shift))
+                      object_release_shift=_release_shift_option(args.object_release_shift),
+                      object_keep_release=None if args.object_keep_release is None
+                      else [f.strip() for f in args.object_keep_release.split(",") if f.strip()])
     if args.json:
         print(json.dumps(manifest, indent=2))
     else:
@@ -154,6 +161,9 @@ def _export(args) -> int:
             if shift:
                 print("object query: where it goes moved by " + ", ".join(f"{100 * v:+.1f}" for v in shift)
                       + " cm (x, y, z; base frame)")
+            if manifest["object_query"].get("keep_release"):
+                print("object query: where it goes kept for later grasp cycles in "
+                      + ", ".join(manifest["object_query"]["keep_release"]))
     from policy.sensitivity import record_in_manifest
 
     record_in_manifest(Path(args.out), manifest, quiet=args.json)

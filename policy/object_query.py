@@ -49,6 +49,11 @@ class ObjectQuerySpec:
     # middle phase that it is (runtime/phases.py), where drawer_put takes it after the handle (1).
     family_stage: tuple[tuple[str, int], ...] = ()
     release_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)  # added to the locator's release point [m]
+    # Families whose grasp cycles after the query's still get its drop point (not its object point: the object has
+    # moved): in drawer_stow a later cycle is the same object taken again to the same drawer, after it was let go
+    # elsewhere; drawer_put's next cycle is the handle. Without it the retry ran on the head's drop, 13 cm in front
+    # (policy/EXPERIMENTS.md, "The drop kept for the retry").
+    keep_release: tuple[str, ...] = ()
 
     def stage_of(self, family: str | None) -> int:
         return dict(self.family_stage).get(family, self.stage)
@@ -72,13 +77,22 @@ def object_query_spec(manifest: dict) -> ObjectQuerySpec | None:
         raise ValueError(f"manifest object_query.family_stage {by_family!r}: expected a table of its families to "
                          "the grasp cycle each is served in, integers in [0, 8] (drawer_stow's object: 0)")
     shift = q.get("release_shift_m", [0.0, 0.0, 0.0])
+    keep = check_keep_release(q.get("keep_release", []), families, "manifest object_query.keep_release")
     return ObjectQuerySpec(tuple(families), stage, ticks, tuple(sorted(by_family.items())),
-                           check_release_shift(shift, "manifest object_query.release_shift_m"))
+                           check_release_shift(shift, "manifest object_query.release_shift_m"), keep)
 
 
 def check_release_shift(shift, where: str) -> tuple[float, float, float]:
     """A release shift (dx, dy, dz) in metres, base frame, checked (policy.goal_query.check_xyz)."""
     return check_xyz(shift, where, MAX_SHIFT_M, "(base frame)")
+
+
+def check_keep_release(keep, families, where: str) -> tuple[str, ...]:
+    """The families (a list, each served by the query) whose later grasp cycles keep its drop point."""
+    if not (isinstance(keep, (list, tuple)) and all(isinstance(f, str) and f in families for f in keep)):
+        raise ValueError(f"{where} {keep!r}: expected a list of the families the object query serves "
+                         f"({', '.join(families)}) whose later grasp cycles keep its drop point, e.g. drawer_stow")
+    return tuple(dict.fromkeys(keep))
 
 
 def parse_release_shift(text: str) -> tuple[float, float, float]:
@@ -110,21 +124,23 @@ class ObjectQuery:
         self.active = bool(enabled and spec is not None and family in spec.families)
         self.bundle, self.spec = bundle, spec
         self.stage = spec.stage_of(family) if spec is not None else None  # the grasp cycle it serves
+        self.keeps_release = self.active and family in spec.keep_release  # and the drop in the cycles after it
         self._command = bundle.embed(text) if self.active else None  # asked the command, whatever the phase says
         self.answers: list[np.ndarray] = []
         self.points: np.ndarray | None = None  # (2, 3): the object and where it goes, base frame [m]
 
     def inputs(self, images: dict, proprio: np.ndarray, stage: int) -> dict:
         """`Bundle.act`'s grasp and release for this inference ({} for the head's own): the locator is asked
-        on the first `ticks` inferences, its held answer given while `stage` grasp cycles are done."""
+        on the first `ticks` inferences, its held answer given while `stage` grasp cycles are done, and its drop
+        alone after that in a family that keeps it (ObjectQuerySpec.keep_release)."""
         if not self.active:
             return {}
         if len(self.answers) < self.spec.ticks:
             self.answers.append(self.bundle.object_points(images, proprio, self._command))
             self.points = np.median(np.stack(self.answers), axis=0)
-        if stage != self.stage:
+        if stage < self.stage or (stage > self.stage and not self.keeps_release):
             return {}
         flag = np.ones((2, 1), np.float32)
         grasp, release = np.hstack([self.points.astype(np.float32), flag])
         release[:3] += np.asarray(self.spec.release_shift, np.float32)
-        return {"grasp": grasp, "release": release}
+        return {"grasp": grasp, "release": release} if stage == self.stage else {"release": release}

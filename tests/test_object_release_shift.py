@@ -1,5 +1,5 @@
-"""The object query's release shift (policy/object_query.py): read from the manifest, checked, added to the
-locator's release point only."""
+"""The object query's release point (policy/object_query.py): the manifest's shift, read, checked and added to the
+locator's release point only; and the families that keep it for the grasp cycles after the query's."""
 
 import numpy as np
 import pytest
@@ -25,8 +25,12 @@ class _Located:
         return np.array([OBJECT, DROP], np.float32)
 
 
+def _query(manifest, family="drawer_stow"):
+    return ObjectQuery(_Located(object_query_spec(manifest)), "put the red block in the open drawer", family)
+
+
 def _given(manifest):
-    q = ObjectQuery(_Located(object_query_spec(manifest)), "put the red block in the open drawer", "drawer_stow")
+    q = _query(manifest)
     return q, q.inputs({}, None, 0)
 
 
@@ -55,3 +59,24 @@ def test_the_export_option_parses_three_numbers_within_the_limit():
     for bad in ("0,-0.03", "a,b,c", "0,-0.3,0"):
         with pytest.raises(ValueError, match="--object-release-shift"):
             parse_release_shift(bad)
+
+
+def test_a_family_that_keeps_the_drop_gets_it_alone_in_its_later_grasp_cycles():
+    kept = {**MANIFEST, "object_query": {**MANIFEST["object_query"], "keep_release": ["drawer_stow"],
+                                         "release_shift_m": [0.0, -0.03, 0.0]}}
+    stow = _query(kept)
+    assert set(stow.inputs({}, None, 0)) == {"grasp", "release"}  # its own cycle: both points
+    later = stow.inputs({}, None, 1)  # the object let go elsewhere and taken again: the drop, not the old object
+    assert set(later) == {"release"}
+    np.testing.assert_allclose(later["release"], [DROP[0], DROP[1] - 0.03, DROP[2], 1.0], atol=1e-6)
+    assert _query(MANIFEST).inputs({}, None, 1) == {}  # not kept: the head's own, as before
+    put = _query(kept, "drawer_put")  # its next cycle is the handle: nothing kept, nothing before its own cycle
+    assert put.inputs({}, None, 0) == {} and put.inputs({}, None, 2) == {}
+    assert set(put.inputs({}, None, 1)) == {"grasp", "release"}
+
+
+@pytest.mark.parametrize("bad", [["pick_place"], "drawer_stow", [1], None])
+def test_a_manifest_keep_release_of_a_family_the_query_does_not_serve_is_refused(bad):
+    wrong = {**MANIFEST, "object_query": {**MANIFEST["object_query"], "keep_release": bad}}
+    with pytest.raises(ValueError, match=r"object_query\.keep_release .*drawer_put, drawer_stow"):
+        object_query_spec(wrong)

@@ -246,16 +246,23 @@ def test_a_new_denoiser_keeps_a_bundles_queries_and_their_locators(object_bundle
     src = json.loads((root / "bundle" / "manifest.json").read_text())
     # the run again (as a fine-tuned denoiser would be), its locator rebuilt from the bundle's graph: the
     # locator's data and run need not exist any more
-    # ... its release point moved towards the robot (policy.object_query: release_shift_m)
+    # ... its release point moved towards the robot and kept for drawer_stow's later cycles (policy.object_query:
+    # release_shift_m, keep_release)
     m = export(root / "run", root / "kept", cache_dir=CACHE, queries_from=root / "bundle",
-               object_release_shift=(0.0, -0.03, 0.0))
+               object_release_shift=(0.0, -0.03, 0.0), object_keep_release=["drawer_stow"])
     kept = dict(m["object_query"])
     record = kept.pop("kept_from")
-    assert kept == {**src["object_query"], "release_shift_m": [0.0, -0.03, 0.0]}
+    assert kept == {**src["object_query"], "release_shift_m": [0.0, -0.03, 0.0], "keep_release": ["drawer_stow"]}
     assert record["bundle"] == str(root / "bundle")
-    assert Bundle.load(root / "kept").object_query.release_shift == (0.0, -0.03, 0.0)
+    spec = Bundle.load(root / "kept").object_query
+    assert spec.release_shift == (0.0, -0.03, 0.0) and spec.keep_release == ("drawer_stow",)
     with pytest.raises(ValueError, match="no object query"):
         export(root / "run", root / "x", cache_dir=CACHE, object_release_shift=(0.0, -0.03, 0.0))
+    with pytest.raises(ValueError, match="no object query"):
+        export(root / "run", root / "x", cache_dir=CACHE, object_keep_release=["drawer_stow"])
+    with pytest.raises(ValueError, match=r"--object-keep-release \['pick_place'\]: .*drawer_put, drawer_stow"):
+        export(root / "run", root / "x", cache_dir=CACHE, queries_from=root / "bundle",
+               object_keep_release=["pick_place"])
     assert record["locator_question"] == "object" and record["rebuilt_max_abs_err"] <= 1e-6
     assert m["grasp_input"] is True and m["files"]["object_locator.onnx"] == src["files"]["object_locator.onnx"]
     with pytest.raises(ValueError, match="asks no goal query or turn query to keep"):  # the object query anew
