@@ -61,8 +61,9 @@ demo: setup
 	$(VENV)/bin/sudd run --sim --policy policy/bundles/multitask --task pick_place --seed $(DEMO_SEED) --dr heavy \
 	  --duration 40
 
-# The suite on TEST_WORKERS processes (pytest-xdist), then the realtime tests alone: a controller twin that keeps
-# a 500 Hz clock in another process misses periods beside a loaded worker, as a real robot's host would.
+# The suite on TEST_WORKERS processes (pytest-xdist), then the realtime tests alone: beside a loaded worker a
+# controller twin keeping a 500 Hz clock in another process misses periods, and bus topics sent with congestion
+# control "drop" lose messages, as they would on a loaded robot host.
 TEST_WORKERS ?= 2
 test: setup
 	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) -m "not realtime"
