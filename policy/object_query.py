@@ -10,7 +10,8 @@ drawer does not move on the cabinet, so both points can be found before anything
 (policy/goal_locator.py, the "object" question: a copy of the policy's encoders and head taught on rendered
 at-home views of the object stage) is asked the command on the first `ticks` inferences, and the median of its
 answers (base frame) is held and given as the grasp and release points (`Bundle.act(grasp=..., release=...)`)
-while the grasp cycles counted since the start (policy/stage.py) equal `stage`; the other cycles keep the head's.
+while the grasp cycles counted since the start (policy/stage.py) equal `stage`; the other cycles keep the head's,
+except that a family listed in `keep_release` still gets the drop point in the cycles after (ObjectQuerySpec).
 
 The release point given is the locator's plus the manifest's `release_shift_m` (base frame, default none). Why:
 the locator is taught the middle of the drawer's cavity (datagen.view_anchors.drop_point), which with the drawer
