@@ -141,7 +141,14 @@ class ObjectQuery:
             self.points = np.median(np.stack(self.answers), axis=0)
         if stage < self.stage or (stage > self.stage and not self.keeps_release):
             return {}
-        flag = np.ones((2, 1), np.float32)
-        grasp, release = np.hstack([self.points.astype(np.float32), flag])
-        release[:3] += np.asarray(self.spec.release_shift, np.float32)
+        grasp = np.append(self.points[0], 1.0).astype(np.float32)
+        release = np.append(self.drop, 1.0).astype(np.float32)
         return {"grasp": grasp, "release": release} if stage == self.stage else {"release": release}
+
+    @property
+    def drop(self) -> np.ndarray | None:
+        """(3,) the drop point given to the policy (the locator's, shifted by the manifest's release_shift_m), base
+        frame [m]; None before the locator has answered."""
+        if self.points is None:
+            return None
+        return (self.points[1].astype(np.float32) + np.asarray(self.spec.release_shift, np.float32))

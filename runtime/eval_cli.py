@@ -96,6 +96,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="leave a retry after a close on nothing to the policy, instead of moving its approach over "
                          "the object the object query located (runtime/grasp_steer.py): to measure what the steer "
                          "buys on the same seeds")
+    ev.add_argument("--no-release-guard", action="store_true",
+                    help="let the policy open the fingers on the object anywhere, instead of holding back an opening "
+                         "in the air far from the object query's drop point (runtime/release_guard.py): to measure "
+                         "what the guard buys on the same seeds")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -176,7 +180,7 @@ def _eval(args) -> int:
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
                 "served_pause": not args.no_served_pause, "finger_wait": not args.no_finger_wait,
-                "grasp_steer": not args.no_grasp_steer,
+                "grasp_steer": not args.no_grasp_steer, "release_guard": not args.no_release_guard,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "traces": str(args.out / "traces") if args.traces else None,
@@ -344,6 +348,7 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
                                  phases=phases, served_pause=s.get("served_pause", True),
                                  finger_wait=s.get("finger_wait", True), grasp_steer=s.get("grasp_steer", True),
+                                 release_guard=s.get("release_guard", True),
                                  trace=trace).record()
         name = f"{job['suite']}_{job['task']}_{job['seed']}"
         if trace is not None and not out["success"]:

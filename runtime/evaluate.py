@@ -75,6 +75,7 @@ class EpisodeOutcome:
     pauses_served: int = 0  # chunks played from where they move, the arm having held their pause (served_pause)
     finger_waits: int = 0  # chunks replaced by a hold while the fingers still closed or opened (finger_wait)
     grasp_steers: int = 0  # chunks moved over the located object after a close on nothing (grasp_steer)
+    release_holds: int = 0  # chunks whose opening far from the drop was held back (release_guard)
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
@@ -97,6 +98,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
                        served_pause: bool = True, finger_wait: bool = True, grasp_steer: bool = True,
+                       release_guard: bool = True,
                        trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
@@ -109,7 +111,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `served_pause` False:
     every chunk played with its leading pause (runtime/served_pause.py); `finger_wait` False: the arm follows
     the chunks while the fingers still close or open (runtime/finger_wait.py); `grasp_steer` False: a retry after
-    a close on nothing is not moved over the located object (runtime/grasp_steer.py); `trace` a
+    a close on nothing is not moved over the located object (runtime/grasp_steer.py); `release_guard` False: the
+    policy may let its object go anywhere (runtime/release_guard.py); `trace` a
     runtime.eval_trace.Trace to record every tick, chunk and event in."""
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
@@ -120,6 +123,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from runtime.eval_progress import GraspProgress
     from runtime.finger_wait import FingerWait
     from runtime.grasp_steer import GraspSteer
+    from runtime.release_guard import ReleaseGuard
     from runtime.look import Look
     from runtime.phases import Sequencer
     from runtime.served_pause import ServedPause
@@ -141,6 +145,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     pause = ServedPause(enabled=served_pause)
     wait = FingerWait(enabled=finger_wait)
     regrasp = GraspSteer(enabled=grasp_steer)
+    guard = ReleaseGuard(enabled=release_guard)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -206,6 +211,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                         actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
                                         dt_ns * 1e-9)
                         actions = regrasp.chunk(actions, objects, stage, rig.world.gripper_command(), dt_ns * 1e-9)
+                        actions = guard.chunk(actions, objects, stage, rig.world.gripper_command(),
+                                              proprio[-1, GRIPPER_COLUMN])
                         actions = wait.chunk(actions, proprio[-1], t_obs * 1e-9)
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
@@ -231,6 +238,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.pauses_served = pause.trimmed
         out.finger_waits = wait.held
         out.grasp_steers = regrasp.steered
+        out.release_holds = guard.held
         if sequencer is not None:
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:

@@ -42,6 +42,7 @@ def test_the_release_point_given_is_the_locators_plus_the_manifests_shift():
     np.testing.assert_allclose(given["release"], [DROP[0], DROP[1] - 0.03, DROP[2] + 0.01, 1.0], atol=1e-6)
     np.testing.assert_allclose(given["grasp"], [*OBJECT, 1.0], atol=1e-6)  # the object where it lies
     np.testing.assert_allclose(q.points, [OBJECT, DROP], atol=1e-6)  # the answer recorded as the locator gave it
+    np.testing.assert_array_equal(q.drop, given["release"][:3])  # the drop the runtime's release guard measures from
     again = q.inputs({}, None, 0)
     np.testing.assert_allclose(again["release"], given["release"], atol=1e-6)  # added once per inference, not held
 

@@ -80,6 +80,9 @@ class PolicyNodeConfig:
     # After a close on nothing, move the policy's next approach over the object the object query located
     # (runtime/grasp_steer.py): the denoiser hardly follows the grasp point it is given; false: the policy's own.
     grasp_steer: bool = True
+    # Hold back an opening on the object far from the object query's drop point and high above where the object lay
+    # (runtime/release_guard.py): the policy now and then lets go in the air on the way; false: the policy's own.
+    release_guard: bool = True
 
 
 CONFIG = PolicyNodeConfig
@@ -164,6 +167,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from runtime.phases import Sequencer, phases_for
     from runtime.finger_wait import FingerWait
     from runtime.grasp_steer import GraspSteer
+    from runtime.release_guard import ReleaseGuard
     from runtime.served_pause import ServedPause
     from runtime.wrist_turn import steer
     from runtime import messages as m
@@ -246,6 +250,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current["pause"] = ServedPause(enabled=cfg.served_pause)
                     current["wait"] = FingerWait(enabled=cfg.finger_wait)
                     current["regrasp"] = GraspSteer(enabled=cfg.grasp_steer)
+                    current["guard"] = ReleaseGuard(enabled=cfg.release_guard)
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -335,6 +340,11 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             if regrasp.steered and not steered:  # the first steer of the command
                                 event("policy_grasp_steer", "info", "the fingers closed on nothing: the retry is "
                                       "moved over the object the object query located")
+                            guard, held = current["guard"], current["guard"].held
+                            a = guard.chunk(a, objects, stage, request, prop[-1][GRIPPER_COLUMN])
+                            if guard.held and not held:  # the first hold of the command
+                                event("policy_release_guard", "info", "the policy opened the fingers on the object "
+                                      "far from where it goes: held closed")
                             a = current["wait"].chunk(a, prop[-1], t_obs * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
                                 deg = float(np.degrees(turn.turn))
