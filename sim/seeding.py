@@ -9,6 +9,7 @@ contract; add new streams at the end, never in between.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,7 +43,8 @@ def parse_seeds(spec: str) -> tuple[int, ...]:
     """Seeds from "100003,100015,700000-700199" (ranges inclusive), or from a file of such items, one or more per
     line, `#` starting a comment. Order is kept and repeats dropped, so a list of failures can be re-run as is."""
     text = spec
-    if Path(spec).is_file():
+    # A list is never read as a path: a long one is no valid file name (os.stat raised "File name too long").
+    if not re.fullmatch(r"[\d,\-\s]*", spec) and _is_file(spec):
         text = "\n".join(line.split("#", 1)[0] for line in Path(spec).read_text().splitlines())
     seeds: list[int] = []
     for item in text.replace(",", " ").split():
@@ -58,6 +60,13 @@ def parse_seeds(spec: str) -> tuple[int, ...]:
     if not seeds:
         raise ValueError(f"seeds: {spec!r} names no seed; expected e.g. 100003,100015,700000-700199 or a file")
     return tuple(dict.fromkeys(seeds))
+
+
+def _is_file(spec: str) -> bool:
+    try:
+        return Path(spec).is_file()
+    except OSError:  # no name a file system takes (too long): then it is meant as a list, and parsed as one
+        return False
 
 
 def resolve_seeds(seeds: str | None, episodes: int | None, seed_offset: int | None,

@@ -15,6 +15,13 @@ def test_a_file_of_seeds_with_comments(tmp_path):
     assert parse_seeds(str(f)) == (100003, 100015, 700000, 700001, 700002, 5)
 
 
+def test_a_list_too_long_for_a_file_name_is_read_as_a_list():
+    seeds = list(range(100500, 100700, 2))  # 700 characters: os.stat of it as a path raised "File name too long"
+    assert parse_seeds(",".join(map(str, seeds))) == tuple(seeds)
+    with pytest.raises(ValueError, match="is not a seed"):
+        parse_seeds("x" * 600)
+
+
 @pytest.mark.parametrize("spec, names", [("12,x7", "'x7'"), ("9-3", "'9-3'"), ("1.5", "'1.5'"), ("", "names no"),
                                          ("-4", "'-4'")])
 def test_bad_lists_name_the_item(spec, names):
