@@ -123,9 +123,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from runtime.eval_progress import GraspProgress
     from runtime.finger_wait import FingerWait
     from runtime.grasp_steer import GraspSteer
-    from runtime.release_guard import ReleaseGuard
     from runtime.look import Look
     from runtime.phases import Sequencer
+    from runtime.release_guard import ReleaseGuard
     from runtime.served_pause import ServedPause
     from runtime.wrist_turn import steer
     from sim.twins.rig import SimRig
