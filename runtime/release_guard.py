@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from policy.stage import CLOSED
+from policy.stage import CLOSED, GRIPPER_COLUMN
 from runtime.controller.gripper import EMPTY_CLOSED
 
 FAR_M = 0.10  # horizontally from the drop: the drawer's cavity is about 14 cm across, the locator 2 cm off (median)
 LOW_M = 0.04  # above the object's resting centre: lower than this the hand is putting the object down, not dropping it
-GRIPPER = 9  # the gripper channel of an action (position, rot6d, gripper)
 
 
 class ReleaseGuard:
@@ -47,12 +46,12 @@ class ReleaseGuard:
             return actions
         drop, rest_z = objects.drop, float(objects.points[0][2])
         pos = np.asarray(actions[:, :3], np.float64)
-        held = ((np.asarray(actions[:, GRIPPER]) < CLOSED) & (pos[:, 2] > rest_z + LOW_M)
+        held = ((np.asarray(actions[:, GRIPPER_COLUMN]) < CLOSED) & (pos[:, 2] > rest_z + LOW_M)
                 & (np.hypot(pos[:, 0] - drop[0], pos[:, 1] - drop[1]) > FAR_M))
         if not held.any():
             return actions
         out = np.array(actions, copy=True)
-        out[held, GRIPPER] = command
+        out[held, GRIPPER_COLUMN] = command
         self.held += 1
         return out
 
