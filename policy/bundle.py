@@ -279,8 +279,10 @@ class Bundle:
 
     def act(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
             noise: np.ndarray | None = None, rng: np.random.Generator | None = None, trace: list | None = None,
-            stage: int = 0, release: np.ndarray | None = None, grasp: np.ndarray | None = None) -> np.ndarray:
-        """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized.
+            stage: int = 0, release: np.ndarray | None = None, grasp: np.ndarray | None = None,
+            samples: int | None = None) -> np.ndarray:
+        """One action chunk (Tp, Da) float32 in absolute, unnormalized units, rot6d re-orthonormalized; with
+        `samples` K, K chunks (K, Tp, Da) for the same observation, denoised as one batch (policy/coherence.py).
 
         images: camera -> (To, H, W, 3) uint8, oldest first; proprio: (To, Dp) as recorded; text_embedding:
         (instruction_dim,) from `embed`; noise: the initial (Tp, Da) sample, used as given (else drawn from `rng`, N(0, noise_scale^2 I)).
@@ -291,22 +293,27 @@ class Bundle:
         policy/goal_query.py); only for a bundle with release_input.
         grasp: (4,) likewise a grasp point (the object query, policy/object_query.py); only with grasp_input.
         """
+        k = 1 if samples is None else int(samples)
+        if k < 1:
+            raise ValueError(f"samples = {samples!r}: expected a positive number of chunks")
         cond = self._encode(images, proprio, text_embedding, stage, release, grasp)[0]
+        # one draw of the same shape as a single chunk's when k = 1: a single chunk takes the same noise as before
+        shape = (k, self.pred_horizon, self.action_dim)
         if noise is None:
-            shape = (self.pred_horizon, self.action_dim)
             noise = self.noise_scale * (rng or np.random.default_rng()).standard_normal(shape)
-        x = np.asarray(noise, np.float32).reshape(1, self.pred_horizon, self.action_dim)
+        x = np.asarray(noise, np.float32).reshape(shape)
         if trace is not None:
             trace.append(cond)
-        den = self.sessions["denoiser"]
+        den, cond, t_batch = self.sessions["denoiser"], np.repeat(cond, k, axis=0), np.ones(k, np.int64)
         for t, c, c_next in self._schedule:
-            out = den.run(None, {"noisy_actions": x, "timestep": np.array([t], np.int64), "cond": cond})[0]
+            out = den.run(None, {"noisy_actions": x, "timestep": t * t_batch, "cond": cond})[0]
             if trace is not None:
                 trace.append((x, t, out))
             x = self._step(x, out, c, c_next, self._clip).astype(np.float32)
-        a = orthonormalize_rot6d((x[0] - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
+        a = orthonormalize_rot6d((x - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
         p = np.asarray(proprio, np.float32)
-        return from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
+        a = from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
+        return a[0] if samples is None else a
 
     def grasp_point(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,
                     stage: int = 0) -> np.ndarray:

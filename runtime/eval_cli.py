@@ -100,6 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="let the policy open the fingers on the object anywhere, instead of holding back an opening "
                          "in the air far from the object query's drop point (runtime/release_guard.py): to measure "
                          "what the guard buys on the same seeds")
+    ev.add_argument("--samples", type=int, default=1, metavar="K",
+                    help="sample K chunks per policy tick in one batch and run the one most coherent with the chunk "
+                         "before (policy/coherence.py; default 1: the plain sampler)")
     ev.add_argument("--filmstrips", action="store_true",
                     help="write OUT/filmstrips/SUITE_TASK_SEED.png for every failed policy episode: the scene and "
                          "wrist cameras every 2 s of sim time, to see how it failed (the episodes run the same "
@@ -124,6 +127,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _eval(args) -> int:
     from policy.bundle import Bundle
+    from policy.coherence import check_samples
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
     from runtime.eval_report import failure_table, markdown_table, plot, summarise
     from policy.phased import resolve_phased
@@ -146,6 +150,7 @@ def _eval(args) -> int:
     controller = load_controller(args.controller) if args.controller is not None else ControllerConfig()
     controller = with_bundle_levels(controller, bundle.manifest)  # recorded in summary.json as used
     bundle.check_replan_every(args.replan_every)
+    check_samples(args.samples)
     tasks = bundle.tasks if not args.task or "all" in args.task else [get_task(t).name for t in args.task]
     if not tasks:
         raise ValueError(f"{args.policy} records no tasks; name them with --task")
@@ -181,6 +186,7 @@ def _eval(args) -> int:
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
                 "served_pause": not args.no_served_pause, "finger_wait": not args.no_finger_wait,
                 "grasp_steer": not args.no_grasp_steer, "release_guard": not args.no_release_guard,
+                "samples": args.samples,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
                 "traces": str(args.out / "traces") if args.traces else None,
@@ -348,7 +354,7 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
                                  phases=phases, served_pause=s.get("served_pause", True),
                                  finger_wait=s.get("finger_wait", True), grasp_steer=s.get("grasp_steer", True),
-                                 release_guard=s.get("release_guard", True),
+                                 release_guard=s.get("release_guard", True), samples=s.get("samples", 1),
                                  trace=trace).record()
         name = f"{job['suite']}_{job['task']}_{job['seed']}"
         if trace is not None and not out["success"]:

@@ -47,7 +47,7 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
                       served_pause=settings.get("served_pause", True),
                       finger_wait=settings.get("finger_wait", True),
                       grasp_steer=settings.get("grasp_steer", True),
-                      release_guard=settings.get("release_guard", True),
+                      release_guard=settings.get("release_guard", True), samples=settings.get("samples", 1),
                       controller=controller, holdout_colors=tuple(h["colors"]), holdout_shapes=tuple(h["shapes"]),
                       holdout_split=split)
     seen: set[str] = set()

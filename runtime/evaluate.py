@@ -76,6 +76,7 @@ class EpisodeOutcome:
     finger_waits: int = 0  # chunks replaced by a hold while the fingers still closed or opened (finger_wait)
     grasp_steers: int = 0  # chunks moved over the located object after a close on nothing (grasp_steer)
     release_holds: int = 0  # chunks whose opening far from the drop was held back (release_guard)
+    coherent_picks: list[int] | None = None  # with samples > 1: ticks compared, and where not the first sample won
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
     look_gave_up: bool | None = None  # the look pose never reached: the head's own release point
@@ -98,7 +99,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
                        served_pause: bool = True, finger_wait: bool = True, grasp_steer: bool = True,
-                       release_guard: bool = True,
+                       release_guard: bool = True, samples: int = 1,
                        trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
@@ -112,8 +113,10 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     every chunk played with its leading pause (runtime/served_pause.py); `finger_wait` False: the arm follows
     the chunks while the fingers still close or open (runtime/finger_wait.py); `grasp_steer` False: a retry after
     a close on nothing is not moved over the located object (runtime/grasp_steer.py); `release_guard` False: the
-    policy may let its object go anywhere (runtime/release_guard.py); `trace` a
+    policy may let its object go anywhere (runtime/release_guard.py); `samples` K > 1: K chunks per tick, the one
+    most coherent with the chunk before runs (policy/coherence.py); `trace` a
     runtime.eval_trace.Trace to record every tick, chunk and event in."""
+    from policy.coherence import Coherence, sample_chunks
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
@@ -146,6 +149,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     wait = FingerWait(enabled=finger_wait)
     regrasp = GraspSteer(enabled=grasp_steer)
     guard = ReleaseGuard(enabled=release_guard)
+    coherence = Coherence(samples)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -205,7 +209,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                     actions = None if sequencer is None else sequencer.retreat(
                         proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                     if actions is None:  # the policy's turn (not a phase's retreat to the start)
-                        actions = bundle.act(images, proprio, emb, rng=rng, stage=told, **given)[bundle.execute]
+                        chunks = sample_chunks(bundle, samples, images, proprio, emb, rng=rng, stage=told, **given)
+                        actions = coherence.pick(chunks[:, bundle.execute], t_obs * 1e-9, dt_ns * 1e-9)
                         actions = pause.chunk(actions, proprio[-1], rig.world.gripper_command(), t_obs * 1e-9,
                                               speed=1e9 / (dt_ns * control_hz))
                         actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
@@ -214,6 +219,10 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                         actions = guard.chunk(actions, objects, stage, rig.world.gripper_command(),
                                               proprio[-1, GRIPPER_COLUMN])
                         actions = wait.chunk(actions, proprio[-1], t_obs * 1e-9)
+                    else:
+                        coherence.forget()
+                else:
+                    coherence.forget()
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s
@@ -239,6 +248,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.finger_waits = wait.held
         out.grasp_steers = regrasp.steered
         out.release_holds = guard.held
+        out.coherent_picks = [coherence.chose, coherence.changed] if samples > 1 else None
         if sequencer is not None:
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:

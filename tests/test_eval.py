@@ -72,6 +72,26 @@ def test_collector_actions_replayed_through_controller_and_safety_solve_the_task
     assert np.hypot(release["aim_dx_cm"] - release["tcp_dx_cm"], release["aim_dy_cm"] - release["tcp_dy_cm"]) < 1.0
 
 
+class TwoModes(Replay):
+    """Two chunks a call: the recorded ones and the same 4 cm to the side, in an order that swaps every call, as
+    a policy whose draws fall in either of two modes (policy/coherence.py)."""
+
+    def act(self, images, proprio, emb, rng=None, stage=0, samples=None) -> np.ndarray:
+        swap = self.k % 2
+        plain = super().act(images, proprio, emb, rng, stage)
+        side = plain + np.array([0, 0.04] + [0] * 8, np.float32)
+        assert samples == 2
+        return np.stack([side, plain] if swap else [plain, side])
+
+
+def test_coherence_keeps_to_the_mode_the_arm_is_in(collected):
+    out = run_policy_episode(TwoModes(collected.action), "pick_place", SEED, dr="heavy", samples=2)
+    assert out.success, out.record()
+    chose, changed = out.coherent_picks
+    assert chose == out.chunks - 1  # every tick after the first compared, the recorded mode kept:
+    assert changed == chose // 2 + chose % 2  # the second sample on every other call
+
+
 def test_a_stack_release_says_how_far_off_and_how_high_over_the_block_below():
     from datagen.episode import DatagenConfig, run_episode
 

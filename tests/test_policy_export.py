@@ -116,6 +116,23 @@ def test_act_outputs(bundle):
         bundle.act(images, proprio[:1], e)
 
 
+def test_act_samples_are_a_batch_of_single_chunks(bundle):
+    rng = np.random.default_rng(3)
+    images = {c: rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8) for c in bundle.cameras}
+    proprio = np.tile(np.array([0.3, -0.2, 0.25, 1, 0, 0, 0, -1, 0, 0, 0, 0, 0, 0, 0, 0], np.float32), (2, 1))
+    e = bundle.embed("do stack")
+    noise = rng.normal(size=(3, 16, 10)).astype(np.float32)
+    batch = bundle.act(images, proprio, e, noise=noise, samples=3)
+    assert batch.shape == (3, 16, 10)
+    for k in range(3):  # each sample is the chunk its noise gives alone
+        np.testing.assert_allclose(batch[k], bundle.act(images, proprio, e, noise=noise[k]), atol=1e-5)
+    # one sample draws what a single chunk draws: K = 1 is the plain sampler
+    np.testing.assert_array_equal(bundle.act(images, proprio, e, rng=np.random.default_rng(5), samples=1)[0],
+                                  bundle.act(images, proprio, e, rng=np.random.default_rng(5)))
+    with pytest.raises(ValueError, match="samples = 0"):
+        bundle.act(images, proprio, e, samples=0)
+
+
 def test_task_similarity(bundle):
     best, cos = bundle.task_similarity("do stack")
     assert best == "do stack" and cos == pytest.approx(1.0, abs=1e-5)

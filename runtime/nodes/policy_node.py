@@ -83,6 +83,9 @@ class PolicyNodeConfig:
     # Hold back an opening on the object far from the object query's drop point and high above where the object lay
     # (runtime/release_guard.py): the policy now and then lets go in the air on the way; false: the policy's own.
     release_guard: bool = True
+    # Chunks sampled per tick in one batch; the one that goes on most like the chunk before runs
+    # (policy/coherence.py). 1: the plain sampler, one chunk from fresh noise at every tick.
+    samples: int = 1
 
 
 CONFIG = PolicyNodeConfig
@@ -157,6 +160,7 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.goal_query import GoalQuery
+    from policy.coherence import Coherence, check_samples, sample_chunks
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
@@ -176,6 +180,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
         raise ValueError("policy node: no bundle given")
     bundle = Bundle.load(cfg.bundle, intra_op_num_threads=cfg.threads)
     bundle.check_replan_every(cfg.replan_every)
+    check_samples(cfg.samples)
     data_hz = float(bundle.manifest["horizons"].get("control_hz", 10.0))
     To, (H, W) = bundle.obs_horizon, bundle.image_size
     obs_dt_ns = int(round(1e9 / data_hz))  # the observation history's spacing: the training data's
@@ -251,6 +256,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     current["wait"] = FingerWait(enabled=cfg.finger_wait)
                     current["regrasp"] = GraspSteer(enabled=cfg.grasp_steer)
                     current["guard"] = ReleaseGuard(enabled=cfg.release_guard)
+                    current["coherence"] = Coherence(cfg.samples)
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -330,7 +336,9 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         if seq is not None:
                             a = seq.retreat(prop[-1], request, prop[-1][GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                         if a is None:  # the policy's turn (not a phase's retreat to the start)
-                            a = bundle.act(imgs, prop, current["emb"], rng=rng, stage=told, **given)[bundle.execute]
+                            a = sample_chunks(bundle, cfg.samples, imgs, prop, current["emb"], rng=rng, stage=told,
+                                              **given)
+                            a = current["coherence"].pick(a[:, bundle.execute], t_obs * 1e-9, dt_ns * 1e-9)
                             a = current["pause"].chunk(a, prop[-1], request, t_obs * 1e-9,
                                                        speed=1e9 / (dt_ns * data_hz))
                             turn, sure = current["turn"], current["turn"].sure
@@ -351,6 +359,10 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                 report["turn_deg"] = round(deg, 2)
                                 event("policy_turn", "info", f"the wrist turns {deg:+.1f} deg to grasp square to "
                                       "the object's faces", turn_deg=deg)
+                        else:  # a retreat's move: nothing of the policy's to go on from
+                            current["coherence"].forget()
+                    else:  # the look's
+                        current["coherence"].forget()
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
