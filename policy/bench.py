@@ -71,6 +71,9 @@ def run_policy_bench(quick: bool = False, bundle: str | Path | None = None, thre
         for k in threads:
             bk = b if k == threads[0] else Bundle.load(path, intra_op_num_threads=k, verify_hashes=False)
             out["chunk"][f"threads_{k}"] = _pct(_times(lambda: bk.act(imgs, proprio, emb, rng=rng), n))
+        # K chunks in one batch for backward coherence (policy/coherence.py), on the first thread count
+        for kk in (4, 8):
+            out["chunk"][f"samples_{kk}"] = _pct(_times(lambda: b.act(imgs, proprio, emb, rng=rng, samples=kk), n))
         # the bundle's own feed assembly (stage bins, the queries' points at flag 0), as act() and parity use it
         encode = lambda: b._encode(imgs, proprio, emb, 0, None)
         cond = encode()[0]

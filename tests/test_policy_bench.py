@@ -13,7 +13,7 @@ def test_bench_quick_returns_its_keys(monkeypatch):
     assert f["preset"] == "small" and (f["sampler"], f["sampler_steps"]) == ("ddim", 8)
     for key in ("chunk", "obs_encoder", "denoise_step", "text_embed", "params", "bytes", "load_ms", "meets_target"):
         assert key in f, key
-    for name in ("threads_2", "threads_1"):
+    for name in ("threads_2", "threads_1", "samples_4", "samples_8"):
         c = f["chunk"][name]
         assert 0 < c["p50_ms"] <= c["p99_ms"] and c["n"] == 20
     assert 2e6 <= f["params"]["obs_encoder"] + f["params"]["denoiser"] <= 6e6
