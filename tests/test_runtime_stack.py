@@ -300,6 +300,14 @@ def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
     assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
 
 
+def test_samples_are_drawn_in_a_batch_and_picked_for_coherence(bundle):
+    """The node's `samples` (policy/coherence.py): K chunks a tick, the one going on from the chunk before sent."""
+    info, _, chunks, reports = _commanded(bundle, 9, samples=4)
+    chose, changed = reports["policy"]["coherent_picks"]
+    assert chose >= 7 and 0 <= changed <= chose  # every tick after the command's first compared
+    assert all(c.actions.shape == (8, 10) for _, c in chunks)  # one chunk sent, not four
+
+
 def test_a_family_at_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bundle, tmp_path):
     """A bundle whose pace table plays pick_place at 0.5: idle at the bundle's 10 Hz, then, once a pick_place
     command is accepted (and says its family and speed), a chunk every 0.2 s whose actions are 0.2 s apart (the

@@ -383,6 +383,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     if report["errors"] <= 3:
                         event("policy_error", "error", f"inference failed: {exc!r}")
         report["stop_reason"] = ctx.stop_reason
+        if "coherence" in current:  # the last command's: ticks compared with the chunk before, and picks changed
+            report["coherent_picks"] = [current["coherence"].chose, current["coherence"].changed]
     finally:
         report["inference_ms"] = percentiles(infer_ms)
         report["obs_to_publish_ms"] = percentiles(obs_to_pub_ms)
