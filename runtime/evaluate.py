@@ -217,7 +217,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                                         dt_ns * 1e-9)
                         actions = regrasp.chunk(actions, objects, stage, rig.world.gripper_command(), dt_ns * 1e-9)
                         actions = guard.chunk(actions, objects, stage, rig.world.gripper_command(),
-                                              proprio[-1, GRIPPER_COLUMN])
+                                              proprio[-1, GRIPPER_COLUMN], dt_ns * 1e-9)
                         actions = wait.chunk(actions, proprio[-1], t_obs * 1e-9)
                     else:
                         coherence.forget()

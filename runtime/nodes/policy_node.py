@@ -349,7 +349,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                 event("policy_grasp_steer", "info", "the fingers closed on nothing: the retry is "
                                       "moved over the object the object query located")
                             guard, held = current["guard"], current["guard"].held
-                            a = guard.chunk(a, objects, stage, request, prop[-1][GRIPPER_COLUMN])
+                            a = guard.chunk(a, objects, stage, request, prop[-1][GRIPPER_COLUMN], dt_ns * 1e-9)
                             if guard.held and not held:  # the first hold of the command
                                 event("policy_release_guard", "info", "the policy opened the fingers on the object "
                                       "far from where it goes: held closed")
