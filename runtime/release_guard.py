@@ -17,8 +17,8 @@ located centre gets the standing request instead. Every action still goes throug
 
 And a held chunk is carried towards the drop: each action moved horizontally towards it by at most CARRY_M_S times
 its time into the chunk, and raised to the drop's height where it is lower. Why: the policy that wants to let go
-where it is mostly stays there, asking again at every tick; seed 100602 on this machine hovered 12-18 cm from the
-drop with the block held for 23 s, every opening held, until the episode ran out (policy/EXPERIMENTS.md, "The
+where it is mostly stays there, asking again at every tick; seed 100602 on an AVX-512 machine hovered 12-18 cm from
+the drop with the block held for 23 s, every opening held, until the episode ran out (policy/EXPERIMENTS.md, "The
 release guard carries"). Once it has carried, the guard holds openings until the hand is within NEAR_M of the drop,
 not FAR_M: carried to 10 cm it would let go over the drawer's wall.
 
@@ -33,12 +33,12 @@ from policy.stage import CLOSED, GRIPPER_COLUMN
 
 FAR_M = 0.10  # horizontally from the drop: the drawer's cavity is about 14 cm across, the locator 2 cm off (median)
 LOW_M = 0.04  # above the object's resting centre: lower than this the hand is putting the object down, not dropping it
-CARRY_M_S = 0.10  # how fast a held chunk is moved towards the drop (the collector carries at 0.15-0.25 m/s)
+CARRY_M_S = 0.10  # how fast a held chunk is moved towards the drop: 15 cm in 1.5 s, replanned at every tick on the way
 NEAR_M = 0.03  # once carried: how near the drop an opening is let through
 # The fingers are stopped by something when they measure this much more open than requested. Not "less closed than
 # an empty close" (0.9): a policy that hovers its request at 0.77-0.87 after the object slipped out has its fingers
-# there too, and they were taken for a hold (seed 100610 on this machine: the empty hand carried to the drawer). A
-# held block measures 0.17-0.6 closed.
+# there too, and they were taken for a hold (drawer_stow seed 100610: the empty hand carried to the drawer). A held
+# block measures 0.17-0.55 closed under a full request.
 HELD_GAP = 0.15
 
 
