@@ -98,8 +98,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "buys on the same seeds")
     ev.add_argument("--no-release-guard", action="store_true",
                     help="let the policy open the fingers on the object anywhere, instead of holding back an opening "
-                         "in the air far from the object query's drop point (runtime/release_guard.py): to measure "
-                         "what the guard buys on the same seeds")
+                         "in the air far from the object query's drop point and carrying the object there "
+                         "(runtime/release_guard.py): to measure what the guard buys on the same seeds")
     ev.add_argument("--samples", type=int, default=1, metavar="K",
                     help="sample K chunks per policy tick in one batch and run the one most coherent with the chunk "
                          "before (policy/coherence.py; default 1: the plain sampler)")

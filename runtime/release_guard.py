@@ -19,8 +19,8 @@ And a held chunk is carried towards the drop: each action moved horizontally tow
 its time into the chunk, and raised to the drop's height where it is lower. Why: the policy that wants to let go
 where it is mostly stays there, asking again at every tick; seed 100602 on an AVX-512 machine hovered 12-18 cm from
 the drop with the block held for 23 s, every opening held, until the episode ran out (policy/EXPERIMENTS.md, "The
-release guard carries"). Once it has carried, the guard holds openings until the hand is within NEAR_M of the drop,
-not FAR_M: carried to 10 cm it would let go over the drawer's wall.
+release guard carries the held object towards the drop"). Once it has carried, the guard holds openings until the
+hand is within NEAR_M of the drop, not FAR_M: carried to 10 cm it would let go over the drawer's wall.
 
 numpy only: the runtime's policy node and `sudd eval` both use it.
 """

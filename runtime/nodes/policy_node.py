@@ -80,8 +80,8 @@ class PolicyNodeConfig:
     # After a close on nothing, move the policy's next approach over the object the object query located
     # (runtime/grasp_steer.py): the denoiser hardly follows the grasp point it is given; false: the policy's own.
     grasp_steer: bool = True
-    # Hold back an opening on the object far from the object query's drop point and high above where the object lay
-    # (runtime/release_guard.py): the policy now and then lets go in the air on the way; false: the policy's own.
+    # Hold back an opening on the object far from the object query's drop point, high above where the object lay, and
+    # carry it there (runtime/release_guard.py): the policy now and then lets go in the air on the way; false: its own.
     release_guard: bool = True
     # Chunks sampled per tick in one batch; the one that goes on most like the chunk before runs
     # (policy/coherence.py). 1: the plain sampler, one chunk from fresh noise at every tick.
@@ -352,7 +352,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             a = guard.chunk(a, objects, stage, request, prop[-1][GRIPPER_COLUMN], dt_ns * 1e-9)
                             if guard.held and not held:  # the first hold of the command
                                 event("policy_release_guard", "info", "the policy opened the fingers on the object "
-                                      "far from where it goes: held closed")
+                                      "far from where it goes: held closed and carried towards it")
                             a = current["wait"].chunk(a, prop[-1], t_obs * 1e-9)
                             if turn.sure and not sure:  # the first sure answer, once per command
                                 deg = float(np.degrees(turn.turn))
