@@ -35,6 +35,7 @@ import numpy as np
 import onnxruntime as ort
 
 from policy.action_frame import from_tcp, orthonormalize_rot6d, points_from_tcp
+from policy.coherence import check_samples
 from policy.config import AUX_TCP_SCALE
 from policy.bundle_manifest import (FORMAT, STAT_KEYS, SUPPORTED_OPSETS, SUPPORTED_VERSIONS, TEXT_DIM,  # noqa: F401
                                     BundleError, check_manifest, expected_graphs, need, goal_clause_of,
@@ -293,9 +294,7 @@ class Bundle:
         policy/goal_query.py); only for a bundle with release_input.
         grasp: (4,) likewise a grasp point (the object query, policy/object_query.py); only with grasp_input.
         """
-        k = 1 if samples is None else int(samples)
-        if k < 1:
-            raise ValueError(f"samples = {samples!r}: expected a positive number of chunks")
+        k = 1 if samples is None else check_samples(samples)
         cond = self._encode(images, proprio, text_embedding, stage, release, grasp)[0]
         # one draw of the same shape as a single chunk's when k = 1: a single chunk takes the same noise as before
         shape = (k, self.pred_horizon, self.action_dim)
@@ -304,15 +303,14 @@ class Bundle:
         x = np.asarray(noise, np.float32).reshape(shape)
         if trace is not None:
             trace.append(cond)
-        den, cond, t_batch = self.sessions["denoiser"], np.repeat(cond, k, axis=0), np.ones(k, np.int64)
+        den, cond = self.sessions["denoiser"], np.repeat(cond, k, axis=0)
         for t, c, c_next in self._schedule:
-            out = den.run(None, {"noisy_actions": x, "timestep": t * t_batch, "cond": cond})[0]
+            out = den.run(None, {"noisy_actions": x, "timestep": np.full(k, t, np.int64), "cond": cond})[0]
             if trace is not None:
                 trace.append((x, t, out))
             x = self._step(x, out, c, c_next, self._clip).astype(np.float32)
         a = orthonormalize_rot6d((x - self.stats["action_offset"]) / self.stats["action_scale"], self._rot)
-        p = np.asarray(proprio, np.float32)
-        a = from_tcp(a, p[-1, :9]) if self.action_frame == "tcp" else a
+        a = from_tcp(a, np.asarray(proprio, np.float32)[-1, :9]) if self.action_frame == "tcp" else a
         return a[0] if samples is None else a
 
     def grasp_point(self, images: dict[str, np.ndarray], proprio: np.ndarray, text_embedding: np.ndarray,

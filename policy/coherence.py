@@ -6,9 +6,9 @@ nearly the same observation can come from different modes of what it learned: re
 it, let go now or a moment later. Drawn independently at every tick, the arm can switch between them from one tenth of
 a second to the next and commit to neither. On drawer_stow seed 100500, of four chunks drawn at a tick the two furthest
 apart lie 1.9 cm apart over their rows (median over the ticks; 3.2 cm at the 90th percentile), and at one tick in four
-two of them disagree by more than half the gripper's range. Liu et al. ("Bidirectional
-Decoding", ICLR 2025) pick, among several samples, the one closest to the previous decision over the steps both
-cover ("backward coherence"); their "forward contrast" needs a second, weaker policy, which a bundle does not carry.
+two of them disagree by more than half the gripper's range. Liu et al. ("Bidirectional Decoding", ICLR 2025) pick,
+among several samples, the one closest to the previous decision over the steps both cover ("backward coherence");
+their "forward contrast" needs a second, weaker policy, which a bundle does not carry.
 
 How: `Bundle.act(samples=K)` denoises K noises in one batch (the observation is encoded once). Each candidate's
 executed rows are compared with the rows of the chunk picked last that fall at the same times: a chunk made s ticks

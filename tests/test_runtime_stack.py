@@ -19,7 +19,7 @@ from runtime import bus as B
 from runtime import messages as m
 from runtime.launch import Launcher, NodeFailed, node_kind, policy_stack, sim_stack
 
-TASK, SEED = "pick_place", 0
+from stack_runs import SEED, TASK, clean_exit
 
 
 @pytest.fixture(scope="session")
@@ -62,16 +62,6 @@ def _start(bundle, **robot):
     return la, info, w
 
 
-def _clean_exit(la):
-    assert la.alive() == [], la.alive()
-    for p in la.procs.values():
-        assert p.exitcode is not None
-    rob = la.reports["robot"]
-    assert rob["at_rest"] is True and rob["bypass"] == 0, rob
-    assert rob["final_qd_max"] < 0.05  # read after servo_stop; at_rest above is the controller's own check
-    return rob
-
-
 def _nan_chunk_bytes() -> bytes:
     now = time.monotonic_ns()
     c = m.ActionChunk(actions=np.full((2, 10), 12345.0), times_ns=np.array([now, now + 10**8]), obs_time_ns=now)
@@ -100,7 +90,7 @@ def test_end_to_end_refusal_and_malformed_chunks(bundle):
     finally:
         reason = la.monitor(duration_s=0.0)
     assert reason == "duration over"
-    rob = _clean_exit(la)
+    rob = clean_exit(la)
     pol = la.reports["policy"]
     assert all(c == 0 for c in la.exit_codes.values()), la.exit_codes
     # frames and chunks flowed, the controller executed them through safety and the arm moved
@@ -133,7 +123,7 @@ def test_killed_policy_stops_the_stack_robot_first(bundle):
     finally:
         la.shutdown("test end")
     assert "policy" in reason and la.failed == ["policy"]
-    rob = _clean_exit(la)
+    rob = clean_exit(la)
     assert la.exit_codes["robot"] == 0 and la.exit_codes["policy"] == -signal.SIGKILL
     assert rob["events"].get("controlled_stop", 0) >= 1 and rob["stop_reason"] == "stop requested"
     assert la.robot_stopped_after_s < 8.0
@@ -156,7 +146,7 @@ def test_dead_camera_stops_chunks_the_arm_holds_and_it_recovers(bundle):
         assert w.wait(lambda: "policy_resumed" in w.kinds() and len(w.chunks) >= n_dead + 3, 25), w.kinds()
     finally:
         la.monitor(duration_s=0.0)
-    rob = _clean_exit(la)
+    rob = clean_exit(la)
     assert n_at_stale >= 3 and n_dead <= n_at_stale + 1  # at most one in flight while the camera was dead
     # (a loaded machine may also report a brief robot-state gap; the camera's must be among the reasons)
     stale = [e.message for e in w.events if e.kind == "policy_stale_input"]
@@ -176,7 +166,7 @@ def test_injected_protective_stop_holds_without_crash(bundle):
         assert la.alive() == ["robot", "policy"]
     finally:
         la.monitor(duration_s=0.0)
-    rob = _clean_exit(la)
+    rob = clean_exit(la)
     assert all(c == 0 for c in la.exit_codes.values())
     assert rob["protective_stopped"] and rob["events"].get("protective_stop", 0) >= 1
     # the cause reaches the operator once, as an event and in the report
@@ -198,7 +188,7 @@ def test_sim_cameras_rendered_in_their_own_process_or_in_the_robot_node(bundle, 
         assert w.wait(lambda: min(len(v) for v in got.values()) >= 10, 20), {k: len(v) for k, v in got.items()}
     finally:
         la.monitor(duration_s=0.0)
-    rob = _clean_exit(la)
+    rob = clean_exit(la)
     assert min(rob["frames_published"].values()) >= 10, rob["frames_published"]
     for name, frames in got.items():
         caps = [f.capture_ns for _, f in frames]
@@ -245,7 +235,7 @@ def test_policy_on_another_computer_joins_the_robots_bus_with_connect(bundle):
             assert w.wait(again, 20.0) and w.wait(lambda: len(w.chunks) >= n + 5, 30.0)
     finally:
         robot.shutdown("test over")
-    assert _clean_exit(robot)["chunks_accepted"] >= 10
+    assert clean_exit(robot)["chunks_accepted"] >= 10
 
 
 def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
@@ -255,154 +245,3 @@ def test_connect_to_a_hub_nobody_holds_fails_before_starting_nodes(bundle):
     with pytest.raises(NodeFailed, match="nothing answers at tcp/127.0.0.1:"):
         policy.start()
     assert policy.procs == {} and policy.bus is None
-
-
-def _commanded(bundle, n: int, task: str = TASK, **policy):
-    """Run the sim stack on `task`'s seed-SEED scene with these policy-node settings, say the scene's command and
-    wait for `n` chunks: (every node's ready info, the StatusEvents, [(arrival, chunk)], every node's exit report)."""
-    la = Launcher(sim_stack(str(bundle), task=task, seed=SEED, **policy), hub="tcp/127.0.0.1:0")
-    la.start()
-    events, chunks = [], []
-    la.bus.subscribe(B.SAFETY_EVENT, events.append)
-    la.bus.subscribe(B.POLICY_CHUNK, lambda c: chunks.append((time.monotonic(), c)))
-    try:
-        info = la.wait_ready(90)
-        la.say(info["robot"]["instruction"], "r")
-        deadline = time.monotonic() + 30
-        while len(chunks) < n and time.monotonic() < deadline:
-            time.sleep(0.05)
-    finally:
-        la.shutdown("test end")
-    assert len(chunks) >= n, len(chunks)
-    _clean_exit(la)
-    return info, events, chunks, la.reports
-
-
-def _nine_chunks(bundle, events=None, **policy):
-    """Run the sim stack with these policy-node settings until 9 chunks arrived: (policy's ready info, [(arrival,
-    chunk)], the robot node's exit report); `events`, a list, receives the StatusEvents."""
-    info, seen, chunks, reports = _commanded(bundle, 9, **policy)
-    if events is not None:
-        events.extend(seen)
-    return info["policy"], chunks, reports["robot"]
-
-
-def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
-    """`sudd run --replan-every 4`: a chunk every 4th tick (2.5 Hz for a 10 Hz bundle), its actions still
-    0.1 s apart, as the demonstrations were recorded; the arm keeps moving between chunks."""
-    info, chunks, rob = _nine_chunks(bundle, replan_every=4)
-    assert info["hz"] == 2.5
-    arrivals = np.array([t for t, _ in chunks[1:]])
-    assert 0.3 < np.median(np.diff(arrivals)) < 0.8  # 0.4 s between chunks, not 0.1 s
-    for _, c in chunks:
-        assert np.allclose(np.diff(c.times_ns), 1e8)  # the bundle's 10 Hz
-    assert np.median([(c.times_ns[0] - c.obs_time_ns) for _, c in chunks]) == 1e8
-    assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
-
-
-def test_samples_are_drawn_in_a_batch_and_picked_for_coherence(bundle):
-    """The node's `samples` (policy/coherence.py): K chunks a tick, the one going on from the chunk before sent."""
-    info, _, chunks, reports = _commanded(bundle, 9, samples=4)
-    chose, changed = reports["policy"]["coherent_picks"]
-    assert chose >= 7 and 0 <= changed <= chose  # every tick after the command's first compared
-    assert all(c.actions.shape == (8, 10) for _, c in chunks)  # one chunk sent, not four
-
-
-def test_a_family_at_half_speed_spaces_ticks_and_actions_twice_as_far_apart(bundle, tmp_path):
-    """A bundle whose pace table plays pick_place at 0.5: idle at the bundle's 10 Hz, then, once a pick_place
-    command is accepted (and says its family and speed), a chunk every 0.2 s whose actions are 0.2 s apart (the
-    arm at half the recorded pace); the arm still moves."""
-    import json
-
-    from policy.testing import linked_copy
-
-    paced = linked_copy(bundle, tmp_path / "paced")
-    manifest = json.loads((paced / "manifest.json").read_text())
-    (paced / "manifest.json").write_text(json.dumps({**manifest, "pace": {"pick_place": 0.5}}))
-    events = []
-    info, chunks, rob = _nine_chunks(paced, events)
-    assert info["hz"] == 10.0 and info["pace"] == {"pick_place": 0.5}
-    accepted = [e for e in events if e.kind == "command_accepted"]
-    assert len(accepted) == 1 and "pick_place at speed 0.5" in accepted[0].message, accepted
-    assert accepted[0].values["speed"] == 0.5
-    arrivals = np.array([t for t, _ in chunks[1:]])
-    assert 0.15 < np.median(np.diff(arrivals)) < 0.4  # 0.2 s between chunks, not 0.1 s
-    for _, c in chunks:
-        assert np.allclose(np.diff(c.times_ns), 2e8)
-    assert rob["chunks_accepted"] >= 5 and rob["moved_rad"] > 1e-4, rob
-
-
-def test_phases_run_a_drawer_put_command_as_its_first_skill_at_that_skills_pace(bundle, tmp_path):
-    """`sudd run` with a bundle that runs drawer_put as its phases (its manifest's `phased`, policy/phased.py;
-    `--phases` forces them): a drawer_put command (one the bundle is told it was trained on) is accepted as
-    drawer_put, and from the first inference the node runs phase 1 of 3, "open the drawer", at drawer_open's
-    pace in the bundle's table (0.5 here): it says so, and that chunk's actions are 0.2 s apart."""
-    import json
-
-    from policy.testing import linked_copy
-    from sim.build import build_episode
-
-    instruction = build_episode("drawer_put", SEED, "off", "fast").instruction
-    phased = linked_copy(bundle, tmp_path / "phased")
-    manifest = json.loads((phased / "manifest.json").read_text())
-    (phased / "manifest.json").write_text(json.dumps({
-        **manifest, "pace": {"drawer_open": 0.5}, "tasks": [*manifest["tasks"], "drawer_put", "drawer_open"],
-        "phased": ["drawer_put"],
-        "instructions": [*manifest["instructions"], instruction]}))
-    info, events, chunks, _ = _commanded(phased, 6, task="drawer_put")
-    assert info["robot"]["instruction"] == instruction and info["policy"]["phased"] == ["drawer_put"]
-    accepted = [e for e in events if e.kind == "command_accepted"]
-    assert len(accepted) == 1 and "drawer_put at speed 1" in accepted[0].message, accepted
-    phases = [e for e in events if e.kind == "policy_phase"]
-    assert phases[0].message == "phase 1 of 3: 'open the drawer' at speed 0.5", phases
-    assert phases[0].values == {"phase": 0.0, "speed": 0.5}
-    # the untrained bundle's gripper can close and reopen before the fingers shut, which counts as a cycle:
-    # later phases, if any, follow in order, each with its own text and pace
-    want = ["", f"phase 2 of 3: '{instruction}' at speed 1", "phase 3 of 3: 'close the drawer' at speed 1"]
-    assert [e.message for e in phases[1:]] == want[1:len(phases)]
-    first = chunks[0][1]  # inferred in phase 1: its actions 1 / (10 Hz x 0.5) apart
-    assert np.allclose(np.diff(first.times_ns), 2e8)
-
-
-def test_the_turn_query_turns_the_wrist_of_a_stack_command_at_a_bounded_rate(bundle, tmp_path):
-    """A stack command to a bundle whose turn locator always answers "turn 30 degrees" (policy.testing's constant
-    locator): the policy node says the turn once (`policy_turn`, 30 degrees from the wrist's yaw at the first
-    frame), and the yaws of the actions it sends turn towards it at no more than 0.6 rad/s (runtime/wrist_turn.py).
-    Asked again as the wrist turns, this locator, blind to the turn, says +30 again: the target stays the equal grasp
-    nearest the start yaw, so the wrist never turns more than 45 degrees from it. The untrained policy's gripper
-    is held open (a first grasp cycle ends the turn)."""
-    import json
-
-    from policy.bundle import sha256_file
-    from policy.grasp_axis import yaw_of
-    from policy.testing import constant_turn_locator
-    from runtime.wrist_turn import DEFAULT_RATE
-    from sim.build import build_episode
-
-    instruction = build_episode("stack", SEED, "off", "fast").instruction
-    turned = constant_turn_locator(bundle, tmp_path / "turned", "stack", 30.0)
-    manifest = json.loads((turned / "manifest.json").read_text())
-    # The untrained gripper column flips open and shut, and its first grasp cycle would end the turn: keep the
-    # hand open (the gripper action's scale so large that every sample reads about 0).
-    with np.load(turned / "stats.npz") as z:
-        stats = {k: z[k] for k in z.files}
-    stats["action_scale"][9], stats["action_offset"][9] = 1e4, 0.0
-    np.savez(turned / "stats.npz", **stats)
-    manifest["files"]["stats.npz"] = {"bytes": (turned / "stats.npz").stat().st_size,
-                                      "sha256": sha256_file(turned / "stats.npz")}
-    (turned / "manifest.json").write_text(json.dumps({
-        **manifest, "tasks": sorted({*manifest["tasks"], "stack"}),
-        "instructions": [*manifest["instructions"], instruction]}))
-    info, events, chunks, reports = _commanded(turned, 30, task="stack")
-    assert info["robot"]["instruction"] == instruction
-    turns = [e for e in events if e.kind == "policy_turn"]
-    assert len(turns) == 1 and turns[0].values["turn_deg"] == pytest.approx(30.0, abs=1e-3), turns
-    assert "+30.0 deg" in turns[0].message and reports["policy"]["turn_deg"] == pytest.approx(30.0, abs=0.01)
-    yaws = np.array([[yaw_of(a[3:9]) for a in c.actions] for _, c in chunks])
-    start = yaws[0, 0] - DEFAULT_RATE * 0.1  # the first action is already one step of the turn along
-    rel = np.degrees((yaws - start + np.pi) % (2 * np.pi) - np.pi)
-    assert rel[0, -1] == pytest.approx(8 * np.degrees(DEFAULT_RATE * 0.1), abs=0.5)  # 8 steps towards +30
-    assert np.all(np.abs(rel) < 45.0 + 1.0), rel.round(1)  # never past the grasp nearest the start yaw
-    steps = np.abs(np.degrees((np.diff(yaws, axis=1) + np.pi) % (2 * np.pi) - np.pi))
-    assert np.all(steps < np.degrees(DEFAULT_RATE * 0.1) + 0.5), steps.round(2)  # 0.6 rad/s at 10 Hz
-    assert rel[:, -1].max() > 29.0  # it reached the turn asked for
