@@ -100,6 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="let the policy open the fingers on the object anywhere, instead of holding back an opening "
                          "in the air far from the object query's drop point and carrying the object there "
                          "(runtime/release_guard.py): to measure what the guard buys on the same seeds")
+    ev.add_argument("--no-handle-height", action="store_true",
+                    help="let the arm sink or rise while the fingers hold a drawer's handle, instead of keeping the "
+                         "height they closed at (runtime/handle_height.py): to measure what that buys")
     ev.add_argument("--samples", type=int, default=1, metavar="K",
                     help="sample K chunks per policy tick in one batch and run the one most coherent with the chunk "
                          "before (policy/coherence.py; default 1: the plain sampler)")
@@ -186,6 +189,7 @@ def _eval(args) -> int:
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
                 "served_pause": not args.no_served_pause, "finger_wait": not args.no_finger_wait,
                 "grasp_steer": not args.no_grasp_steer, "release_guard": not args.no_release_guard,
+                "handle_height": not args.no_handle_height,
                 "samples": args.samples,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,
@@ -335,6 +339,7 @@ def _job(job: dict) -> dict:
 def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
     from runtime.eval_filmstrip import Filmstrip
+    from runtime.shaping import shaping_of
     from runtime.eval_trace import Trace
     from runtime.evaluate import run_policy_episode
     from runtime.phases import phases_for
@@ -352,9 +357,7 @@ def _policy(job: dict, s: dict, holdout) -> dict:
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
                                  speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
-                                 phases=phases, served_pause=s.get("served_pause", True),
-                                 finger_wait=s.get("finger_wait", True), grasp_steer=s.get("grasp_steer", True),
-                                 release_guard=s.get("release_guard", True), samples=s.get("samples", 1),
+                                 phases=phases, shaping=shaping_of(s),
                                  trace=trace).record()
         name = f"{job['suite']}_{job['task']}_{job['seed']}"
         if trace is not None and not out["success"]:

@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from runtime.controller import ControllerConfig
+from runtime.shaping import shaping_of
 
 _ENDING = ("task_success", "sim_protective_stop")
 
@@ -44,10 +45,7 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
     specs = sim_stack(settings["bundle"], task=task, seed=seed, dr=settings["dr"], command=command,
                       replan_every=settings["replan_every"], speed=settings["speed"],
                       goal_query=settings["goal_query"], phases=task in settings["phases"],
-                      served_pause=settings.get("served_pause", True),
-                      finger_wait=settings.get("finger_wait", True),
-                      grasp_steer=settings.get("grasp_steer", True),
-                      release_guard=settings.get("release_guard", True), samples=settings.get("samples", 1),
+                      shaping=shaping_of(settings),
                       controller=controller, holdout_colors=tuple(h["colors"]), holdout_shapes=tuple(h["shapes"]),
                       holdout_split=split)
     seen: set[str] = set()

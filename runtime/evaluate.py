@@ -35,9 +35,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from policy.pace import check_speed
+from runtime.chunk_shaper import ChunkShaper
 from runtime.controller import ControllerConfig, ControllerLoop, with_bundle_levels
 from runtime.messages import ActionChunk
 from runtime.pace import action_period_ns
+from runtime.shaping import Shaping
 from runtime.sim_cell import cell_limits
 from safety import SafetyFilter, default_limits
 from sim.build import build_episode
@@ -76,6 +78,7 @@ class EpisodeOutcome:
     finger_waits: int = 0  # chunks replaced by a hold while the fingers still closed or opened (finger_wait)
     grasp_steers: int = 0  # chunks moved over the located object after a close on nothing (grasp_steer)
     release_holds: int = 0  # chunks whose opening far from the drop was held back (release_guard)
+    handle_levels: int = 0  # chunks whose heights were kept while the fingers held a drawer's handle (handle_height)
     coherent_picks: list[int] | None = None  # with samples > 1: ticks compared, and where not the first sample won
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
@@ -98,8 +101,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
-                       served_pause: bool = True, finger_wait: bool = True, grasp_steer: bool = True,
-                       release_guard: bool = True, samples: int = 1,
+                       shaping: Shaping = Shaping(),
                        trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
@@ -109,14 +111,11 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     observations still 1 / control_hz); `goal_query` False: the head's own release point, where the bundle's
     goal query would replace it (policy.goal_query), or the object query a long task's later points
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
-    phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `served_pause` False:
-    every chunk played with its leading pause (runtime/served_pause.py); `finger_wait` False: the arm follows
-    the chunks while the fingers still close or open (runtime/finger_wait.py); `grasp_steer` False: a retry after
-    a close on nothing is not moved over the located object (runtime/grasp_steer.py); `release_guard` False: the
-    policy may let its object go anywhere (runtime/release_guard.py); `samples` K > 1: K chunks per tick, the one
-    most coherent with the chunk before runs (policy/coherence.py); `trace` a
+    phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `shaping` which of the
+    steps between the denoiser and the controller run, and the samples drawn per tick (runtime/chunk_shaper.py);
+    `trace` a
     runtime.eval_trace.Trace to record every tick, chunk and event in."""
-    from policy.coherence import Coherence, sample_chunks
+    from policy.coherence import sample_chunks
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
@@ -124,13 +123,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     from datagen.recorder import Recorder
     from policy.stage import GRIPPER_COLUMN, GraspCycles
     from runtime.eval_progress import GraspProgress
-    from runtime.finger_wait import FingerWait
-    from runtime.grasp_steer import GraspSteer
     from runtime.look import Look
     from runtime.phases import Sequencer
-    from runtime.release_guard import ReleaseGuard
-    from runtime.served_pause import ServedPause
-    from runtime.wrist_turn import steer
     from sim.twins.rig import SimRig
 
     check_speed(speed)  # before anything is built
@@ -145,11 +139,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     objects = ObjectQuery(bundle, text, task, enabled=goal_query)
     look = Look(query)
     turn = TurnQuery(bundle, text, task, enabled=goal_query)
-    pause = ServedPause(enabled=served_pause)
-    wait = FingerWait(enabled=finger_wait)
-    regrasp = GraspSteer(enabled=grasp_steer)
-    guard = ReleaseGuard(enabled=release_guard)
-    coherence = Coherence(samples)
+    shaper = ChunkShaper(turn, shaping)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
@@ -192,7 +182,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 images, proprio = rec.window(To)
                 t0 = time.perf_counter()
                 stage = cycles.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN])
-                regrasp.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], stage, rig.world.time)
+                shaper.regrasp.update(rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], stage, rig.world.time)
                 if sequencer is not None and sequencer.update(stage, proprio[-1]):  # the next skill: text, pace
                     out.phase, emb = sequencer.index, sequencer.embedding
                     out.phase_starts.append(round(float(rig.world.time), 2))
@@ -209,20 +199,16 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                     actions = None if sequencer is None else sequencer.retreat(
                         proprio[-1], rig.world.gripper_command(), proprio[-1, GRIPPER_COLUMN], n_exec, dt_ns * 1e-9)
                     if actions is None:  # the policy's turn (not a phase's retreat to the start)
-                        chunks = sample_chunks(bundle, samples, images, proprio, emb, rng=rng, stage=told, **given)
-                        actions = coherence.pick(chunks[:, bundle.execute], t_obs * 1e-9, dt_ns * 1e-9)
-                        actions = pause.chunk(actions, proprio[-1], rig.world.gripper_command(), t_obs * 1e-9,
-                                              speed=1e9 / (dt_ns * control_hz))
-                        actions = steer(turn, actions, images, proprio, stage, rig.world.gripper_command() >= 0.5,
-                                        dt_ns * 1e-9)
-                        actions = regrasp.chunk(actions, objects, stage, rig.world.gripper_command(), dt_ns * 1e-9)
-                        actions = guard.chunk(actions, objects, stage, rig.world.gripper_command(),
-                                              proprio[-1, GRIPPER_COLUMN], dt_ns * 1e-9)
-                        actions = wait.chunk(actions, proprio[-1], t_obs * 1e-9)
+                        chunks = sample_chunks(bundle, shaping.samples, images, proprio, emb, rng=rng, stage=told,
+                                               **given)
+                        actions = shaper.chunk(chunks[:, bundle.execute], images, proprio, stage, objects,
+                                               rig.world.gripper_command(),
+                                               task if sequencer is None else sequencer.family, t_obs * 1e-9,
+                                               dt_ns * 1e-9, speed=1e9 / (dt_ns * control_hz))
                     else:
-                        coherence.forget()
+                        shaper.forget()
                 else:
-                    coherence.forget()
+                    shaper.forget()
                 lag = time.perf_counter() - t0
                 out.inference_ms.append(lag * 1e3)
                 lag = lag if latency_s is None else latency_s
@@ -244,11 +230,13 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
             tick += 1
         out.sim_seconds = round(float(rig.world.time), 3)
         out.grasp_cycles = cycles.count
-        out.pauses_served = pause.trimmed
-        out.finger_waits = wait.held
-        out.grasp_steers = regrasp.steered
-        out.release_holds = guard.held
-        out.coherent_picks = [coherence.chose, coherence.changed] if samples > 1 else None
+        out.pauses_served = shaper.pause.trimmed
+        out.finger_waits = shaper.wait.held
+        out.grasp_steers = shaper.regrasp.steered
+        out.release_holds = shaper.guard.held
+        out.handle_levels = shaper.level.kept
+        c = shaper.coherence
+        out.coherent_picks = [c.chose, c.changed] if shaping.samples > 1 else None
         if sequencer is not None:
             out.retreats = sequencer.retreat_seconds
         if query.point is not None:

@@ -37,6 +37,7 @@ import time
 from dataclasses import dataclass
 
 from runtime.nodes.common import HUB_DEFAULT, BusSettings, config_to_dict
+from runtime.shaping import Shaping
 
 log = logging.getLogger(__name__)
 
@@ -68,11 +69,10 @@ def bundle_manifest(path) -> dict:
 
 def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "off", command: str = "",
               robot: str = "ur5", replan_every: int = 1, speed: str = "", goal_query: bool = True,
-              phases: bool | None = None, served_pause: bool = True, finger_wait: bool = True,
-              grasp_steer: bool = True, release_guard: bool = True, samples: int = 1,
-              **robot_overrides) -> list[NodeSpec]:
+              phases: bool | None = None, shaping: Shaping = Shaping(), **robot_overrides) -> list[NodeSpec]:
     """robot node (sim twins + cameras matching the bundle) + policy node. The scene keeps the bundle's
-    held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do."""
+    held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do. `shaping`: the
+    policy node's steps between the denoiser and the controller (runtime/chunk_shaper.py)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
     from runtime.nodes.robot_node import RobotNodeConfig
 
@@ -82,9 +82,7 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
                               "image_size": tuple(man["image_size"]), "holdout_colors": tuple(held.get("colors", ())),
                               "holdout_shapes": tuple(held.get("shapes", ())), **robot_overrides})
     pcfg = PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
-                            goal_query=goal_query, phases=phases, served_pause=served_pause,
-                            finger_wait=finger_wait, grasp_steer=grasp_steer, release_guard=release_guard,
-                            samples=samples)
+                            goal_query=goal_query, phases=phases, **dataclasses.asdict(shaping))
     return [NodeSpec(ROBOT, "runtime.nodes.robot_node", rcfg), NodeSpec("policy", "runtime.nodes.policy_node", pcfg)]
 
 

@@ -40,6 +40,7 @@ class Phase:
     stage_from: int = 0
     # Whether the arm first goes back to where the command started (runtime/retreat.py), as the skill's data began.
     from_start: bool = False
+    family: str = ""  # the family whose skill the phase is (runtime.handle_height: a skill on a drawer's handle)
 
 
 def phases_for(task: str, pace: Pace, instructions=(), tasks=()) -> list[Phase]:
@@ -54,9 +55,10 @@ def phases_for(task: str, pace: Pace, instructions=(), tasks=()) -> list[Phase]:
     for i, (text, family) in enumerate(PHASED[task]):
         skill = SKILL_PHASE.get(task, {}).get(i)
         if text is None and skill in tasks:
-            out.append(Phase(OWN_PHASE_TEXT[task][i], pace.speed(skill), i, from_start=True))
+            out.append(Phase(OWN_PHASE_TEXT[task][i], pace.speed(skill), i, from_start=True, family=skill))
         else:
-            out.append(Phase(text if text is not None else own.get(i), pace.speed(family), 0 if family == task else i))
+            out.append(Phase(text if text is not None else own.get(i), pace.speed(family), 0 if family == task else i,
+                             family=family))
     return out
 
 
@@ -138,6 +140,10 @@ class Sequencer:
     def stage(self, grasp_cycles: int) -> int:
         """The grasp cycles to tell the policy in the phase running (Phase.stage_from)."""
         return max(int(grasp_cycles) - self.phases[self.index or 0].stage_from, 0)
+
+    @property
+    def family(self) -> str:
+        return self.phases[self.index or 0].family
 
     @property
     def speed(self) -> float:

@@ -204,7 +204,7 @@ def _run(args) -> int:
                 succeeded["v"] = True
             if msg.severity in ("warning", "error", "critical") or msg.kind.startswith(("command", "task")) \
                     or msg.kind in ("policy_phase", "policy_goal_point", "policy_look", "policy_grasp_steer",
-                                    "policy_release_guard"):
+                                    "policy_release_guard", "policy_handle_height"):
                 print(f"[{msg.severity}] {msg.kind}: {msg.message}", file=sys.stderr)
 
         la.bus.subscribe(B.SAFETY_EVENT, on_event)

@@ -14,6 +14,7 @@ import pytest
 
 from runtime.eval_progress import target_name
 from runtime.evaluate import run_policy_episode
+from runtime.shaping import Shaping
 from sim.build import build_episode
 from sim.dr_config import load_dr
 from sim.state import StateView
@@ -85,7 +86,7 @@ class TwoModes(Replay):
 
 
 def test_coherence_keeps_to_the_mode_the_arm_is_in(collected):
-    out = run_policy_episode(TwoModes(collected.action), "pick_place", SEED, dr="heavy", samples=2)
+    out = run_policy_episode(TwoModes(collected.action), "pick_place", SEED, dr="heavy", shaping=Shaping(samples=2))
     assert out.success, out.record()
     chose, changed = out.coherent_picks
     assert chose == out.chunks - 1  # every tick after the first compared, the recorded mode kept:

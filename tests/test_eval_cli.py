@@ -114,8 +114,9 @@ def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_on
 
     by_task = {kw["phases"] is not None: kw for kw in episode_kwargs[-2:]}  # pick_place, then drawer_put
     assert by_task[False]["speed"] == 1.0  # pick_place is one command whatever --phases says
-    assert by_task[True]["phases"] == [Phase("open the drawer", 0.75), Phase(None, 1.0),
-                                       Phase("close the drawer", 1.0, stage_from=2)]
+    assert by_task[True]["phases"] == [Phase("open the drawer", 0.75, family="drawer_open"),
+                                       Phase(None, 1.0, family="drawer_put"),
+                                       Phase("close the drawer", 1.0, stage_from=2, family="drawer_close")]
     told = (tmp_path / "f" / "results.md").read_text()
     assert "Run as their phases (runtime/phases.py; --phases): drawer_put" in told
     assert main([*base, "--speed", "drawer_shut=0.5", "--out", str(tmp_path / "d")]) == 2

@@ -84,13 +84,14 @@ def _height_when_closed(collected, wait: bool) -> float:
     0.6 s (as the policy did on drawer_stow seed 100502): how high over its grasp height the TCP was [m] when the
     fingers stopped on the object."""
     from runtime.evaluate import run_policy_episode
+    from runtime.shaping import Shaping
     from tests.test_eval import SEED, Replay
 
     close = int(np.argmax(collected.action[:, G] > 0.5))
     early = np.delete(collected.action, np.arange(close + 2, close + 6), axis=0)
     seen = []
     run_policy_episode(Replay(early), "pick_place", SEED, dr="heavy", latency_s=0.006, time_limit_factor=0.4,
-                       finger_wait=wait,
+                       shaping=Shaping(finger_wait=wait),
                        observer=lambda world, inst: seen.append((world.tcp_pose()[2, 3], world.gripper_position(),
                                                                  world.gripper_command())))
     z, closure, cmd = np.asarray(seen).T

@@ -12,7 +12,8 @@ PUT = "place the blue block inside the drawer, then close the drawer"
 def test_drawer_put_is_open_take_close_at_each_skills_pace():
     phases = phases_for("drawer_put", Pace({"drawer_open": 0.75, "drawer_close": 0.5}))
     # "close the drawer" is drawer_close's skill: told the cycles since it began, as drawer_close's data counts
-    assert phases == [Phase("open the drawer", 0.75), Phase(None, 1.0), Phase("close the drawer", 0.5, stage_from=2)]
+    assert phases == [Phase("open the drawer", 0.75, family="drawer_open"), Phase(None, 1.0, family="drawer_put"),
+                      Phase("close the drawer", 0.5, stage_from=2, family="drawer_close")]
     assert [phase_at(phases, n) for n in (-1, 0, 1, 2, 5)] == [0, 0, 1, 2, 2]
     with pytest.raises(ValueError, match="'pick_place' is run as one command; phased families: drawer_put"):
         phases_for("pick_place", Pace({}))
@@ -24,9 +25,9 @@ def test_a_bundle_taught_the_middle_cycles_own_text_runs_that_phase_under_it():
 
     pace = Pace({"drawer_close": 0.5})
     plain = ["put the red block in the drawer and close it", "close the drawer"]
-    assert phases_for("drawer_put", pace, plain)[1] == Phase(None, 1.0)  # never taught: the command, as before
+    assert phases_for("drawer_put", pace, plain)[1] == Phase(None, 1.0, family="drawer_put")  # never taught: the command, as before
     taught = phases_for("drawer_put", pace, plain + ["pick up the green cylinder and put it in the open drawer"])
-    assert taught[1] == Phase("pick up the {obj} and put it in the open drawer", 1.0)
+    assert taught[1] == Phase("pick up the {obj} and put it in the open drawer", 1.0, family="drawer_put")
     seq = Sequencer(taught, lambda t: f"emb({t})", "emb(command)", PUT)
     seq.update(1)
     # the command's object, a colour the bundle never saw included
@@ -37,7 +38,8 @@ def test_a_bundle_taught_the_middle_cycles_own_text_runs_that_phase_under_it():
     assert free.embedding == "emb(command)"  # no object named: the command itself
     skill = phases_for("drawer_put", pace, plain, tasks=["drawer_close", "drawer_put", "drawer_stow"])
     # taught drawer_stow: the middle phase is its skill, at its pace, counting from 0 as its data, from home
-    assert skill[1] == Phase("pick up the {obj} and put it in the open drawer", 1.0, 1, from_start=True)
+    assert skill[1] == Phase("pick up the {obj} and put it in the open drawer", 1.0, 1, from_start=True,
+                             family="drawer_stow")
     assert skill[0] == taught[0] and skill[2] == taught[2]
     assert [command_object(c) for c in ("could you stow the purple bar in the drawer and close it",
                                         "store the  red block into a drawer", "open the drawer")] == \

@@ -7,6 +7,8 @@ import pytest
 
 from stack_runs import SEED, commanded, nine_chunks
 
+from runtime.shaping import Shaping
+
 
 @pytest.fixture(scope="session")
 def bundle(untrained_bundle):
@@ -28,7 +30,7 @@ def test_replan_every_sends_fewer_chunks_at_the_bundles_action_rate(bundle):
 
 def test_samples_are_drawn_in_a_batch_and_picked_for_coherence(bundle):
     """The node's `samples` (policy/coherence.py): K chunks a tick, the one going on from the chunk before sent."""
-    info, _, chunks, reports = commanded(bundle, 9, samples=4)
+    info, _, chunks, reports = commanded(bundle, 9, shaping=Shaping(samples=4))
     chose, changed = reports["policy"]["coherent_picks"]
     assert chose >= 7 and 0 <= changed <= chose  # every tick after the command's first compared
     assert all(c.actions.shape == (8, 10) for _, c in chunks)  # one chunk sent, not four

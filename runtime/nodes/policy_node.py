@@ -83,6 +83,9 @@ class PolicyNodeConfig:
     # Hold back an opening on the object far from the object query's drop point, high above where the object lay, and
     # carry it there (runtime/release_guard.py): the policy now and then lets go in the air on the way; false: its own.
     release_guard: bool = True
+    # Keep the height the fingers closed on a drawer's handle at while they hold it (runtime/handle_height.py): the
+    # chunks sink as they pull or push, and the finger links press on the drawer's front; false: the policy's heights.
+    handle_height: bool = True
     # Chunks sampled per tick in one batch; the one that goes on most like the chunk before runs
     # (policy/coherence.py). 1: the plain sampler, one chunk from fresh noise at every tick.
     samples: int = 1
@@ -160,7 +163,7 @@ def judge_command(bundle, text: str, threshold: float) -> tuple[bool, str | None
 def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.bundle import Bundle
     from policy.goal_query import GoalQuery
-    from policy.coherence import Coherence, check_samples, sample_chunks
+    from policy.coherence import check_samples, sample_chunks
     from policy.object_query import ObjectQuery
     from policy.turn_query import TurnQuery
     from policy.stage import GRIPPER_COLUMN, GraspCycles
@@ -169,11 +172,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from runtime.pace import action_period_ns, command_speed, resolve_pace
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
-    from runtime.finger_wait import FingerWait
-    from runtime.grasp_steer import GraspSteer
-    from runtime.release_guard import ReleaseGuard
-    from runtime.served_pause import ServedPause
-    from runtime.wrist_turn import steer
+    from runtime.chunk_shaper import ChunkShaper
+    from runtime.shaping import shaping_of
     from runtime import messages as m
 
     if not cfg.bundle:
@@ -251,12 +251,9 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
                     current["look"] = Look(current["query"])
-                    current["turn"] = TurnQuery(bundle, text, task, enabled=cfg.goal_query)
-                    current["pause"] = ServedPause(enabled=cfg.served_pause)
-                    current["wait"] = FingerWait(enabled=cfg.finger_wait)
-                    current["regrasp"] = GraspSteer(enabled=cfg.grasp_steer)
-                    current["guard"] = ReleaseGuard(enabled=cfg.release_guard)
-                    current["coherence"] = Coherence(cfg.samples)
+                    current["task"] = task
+                    current["shaper"] = ChunkShaper(TurnQuery(bundle, text, task, enabled=cfg.goal_query),
+                                                    shaping_of(vars(cfg)))
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
                     current["phases"] = Sequencer(phases, bundle.embed, current["emb"], text) if phases else None
                     dt_ns = action_period_ns(data_hz, speed)
@@ -268,8 +265,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                                       f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
                 else:
                     report["refused"] += 1
-                    current.update(text=None, emb=None, query=None, objects=None, phases=None, look=None,
-                                   turn=None)
+                    current.update(text=None, emb=None, query=None, objects=None, phases=None, look=None)
                     why = ("the bundle records no trained instructions" if best is None else
                            f"closest trained instruction '{best}' has cosine {cos:.2f} < "
                            f"{cfg.similarity_threshold:.2f}")
@@ -312,7 +308,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     t0 = time.perf_counter()
                     # g: the newest step's (position, request), as training counts from the recorded steps
                     stage = cycles.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN])
-                    current["regrasp"].update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN], stage, t_obs * 1e-9)
+                    shaper = current["shaper"]
+                    shaper.regrasp.update(0.0 if g is None else g[1], prop[-1][GRIPPER_COLUMN], stage, t_obs * 1e-9)
                     prop = np.asarray(prop, np.float32)
                     seq = current["phases"]
                     if seq is not None and seq.update(stage, prop[-1]):  # the next skill: its text, its pace
@@ -338,31 +335,29 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                         if a is None:  # the policy's turn (not a phase's retreat to the start)
                             a = sample_chunks(bundle, cfg.samples, imgs, prop, current["emb"], rng=rng, stage=told,
                                               **given)
-                            a = current["coherence"].pick(a[:, bundle.execute], t_obs * 1e-9, dt_ns * 1e-9)
-                            a = current["pause"].chunk(a, prop[-1], request, t_obs * 1e-9,
-                                                       speed=1e9 / (dt_ns * data_hz))
-                            turn, sure = current["turn"], current["turn"].sure
-                            a = steer(turn, a, imgs, prop, stage, request >= 0.5, dt_ns * 1e-9)
-                            regrasp, steered = current["regrasp"], current["regrasp"].steered
-                            a = regrasp.chunk(a, objects, stage, request, dt_ns * 1e-9)
-                            if regrasp.steered and not steered:  # the first steer of the command
+                            turn, sure = shaper.turn, shaper.turn.sure
+                            steered, held, kept = shaper.regrasp.steered, shaper.guard.held, shaper.level.kept
+                            a = shaper.chunk(a[:, bundle.execute], imgs, prop, stage, objects, request,
+                                             current["task"] if seq is None else seq.family, t_obs * 1e-9,
+                                             dt_ns * 1e-9, speed=1e9 / (dt_ns * data_hz))
+                            if shaper.regrasp.steered and not steered:  # the first steer of the command
                                 event("policy_grasp_steer", "info", "the fingers closed on nothing: the retry is "
                                       "moved over the object the object query located")
-                            guard, held = current["guard"], current["guard"].held
-                            a = guard.chunk(a, objects, stage, request, prop[-1][GRIPPER_COLUMN], dt_ns * 1e-9)
-                            if guard.held and not held:  # the first hold of the command
+                            if shaper.guard.held and not held:  # the first hold of the command
                                 event("policy_release_guard", "info", "the policy opened the fingers on the object "
                                       "far from where it goes: held closed and carried towards it")
-                            a = current["wait"].chunk(a, prop[-1], t_obs * 1e-9)
+                            if shaper.level.kept and not kept:  # the first kept height of the command
+                                event("policy_handle_height", "info", "the chunks left the height the fingers "
+                                      "closed on the drawer's handle at: kept there while they hold it")
                             if turn.sure and not sure:  # the first sure answer, once per command
                                 deg = float(np.degrees(turn.turn))
                                 report["turn_deg"] = round(deg, 2)
                                 event("policy_turn", "info", f"the wrist turns {deg:+.1f} deg to grasp square to "
                                       "the object's faces", turn_deg=deg)
                         else:  # a retreat's move: nothing of the policy's to go on from
-                            current["coherence"].forget()
+                            shaper.forget()
                     else:  # the look's
-                        current["coherence"].forget()
+                        shaper.forget()
                     if objects.active and found < objects.spec.ticks == len(objects.answers):  # once per command
                         report["object_points"] = np.round(objects.points, 4).tolist()
                         event("policy_object_points", "info", "the object at ({:.3f}, {:.3f}, {:.3f}) m, where it "
@@ -383,8 +378,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     if report["errors"] <= 3:
                         event("policy_error", "error", f"inference failed: {exc!r}")
         report["stop_reason"] = ctx.stop_reason
-        if "coherence" in current:  # the last command's: ticks compared with the chunk before, and picks changed
-            report["coherent_picks"] = [current["coherence"].chose, current["coherence"].changed]
+        if current.get("shaper") is not None:  # the last command's: ticks compared with the chunk before, picks changed
+            report["coherent_picks"] = [current["shaper"].coherence.chose, current["shaper"].coherence.changed]
     finally:
         report["inference_ms"] = percentiles(infer_ms)
         report["obs_to_publish_ms"] = percentiles(obs_to_pub_ms)
