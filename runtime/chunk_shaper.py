@@ -25,6 +25,17 @@ from runtime.shaping import Shaping
 from runtime.wrist_turn import steer
 
 
+# The operator's word the first time a step changes a command's chunks: (step, its count, event kind, message).
+FIRST_WORDS = (
+    ("regrasp", "steered", "policy_grasp_steer", "the fingers closed on nothing: the retry is moved over the object "
+     "the object query located"),
+    ("guard", "held", "policy_release_guard", "the policy opened the fingers on the object far from where it goes: "
+     "held closed and carried towards it"),
+    ("level", "kept", "policy_handle_height", "the chunks left the height the fingers closed on the drawer's handle "
+     "at: kept there while they hold it"),
+)
+
+
 class ChunkShaper:
     """One command's steps (module doc). `turn` is the command's policy.turn_query.TurnQuery."""
 
@@ -36,6 +47,7 @@ class ChunkShaper:
         self.regrasp = GraspSteer(enabled=shaping.grasp_steer)
         self.guard = ReleaseGuard(enabled=shaping.release_guard)
         self.level = HandleHeight(enabled=shaping.handle_height)
+        self.firsts: list[tuple[str, str]] = []  # (event kind, message) of the steps that first acted at this tick
 
     def chunk(self, chunks: np.ndarray, images: dict, proprio: np.ndarray, stage: int, objects, request: float,
               family: str | None, t_obs: float, dt: float, speed: float) -> np.ndarray:
@@ -44,6 +56,7 @@ class ChunkShaper:
         cycles completed; `objects` the command's policy.object_query.ObjectQuery; `request` the gripper's standing
         position request; `family` the running skill's; `t_obs` [s] the observation's time; `dt` [s] between
         actions; `speed` the pace (a fraction of the recorded one)."""
+        before = [getattr(getattr(self, step), count) for step, count, _, _ in FIRST_WORDS]
         now = proprio[-1]
         closure = float(now[GRIPPER_COLUMN])
         a = self.coherence.pick(chunks, t_obs, dt)
@@ -52,6 +65,8 @@ class ChunkShaper:
         a = self.regrasp.chunk(a, objects, stage, request, dt)
         a = self.guard.chunk(a, objects, stage, request, closure, dt)
         a = self.level.chunk(a, family, request, closure, float(now[2]))
+        self.firsts = [(kind, words) for (step, count, kind, words), n in zip(FIRST_WORDS, before)
+                       if getattr(getattr(self, step), count) and not n]
         return self.wait.chunk(a, now, t_obs)
 
     def forget(self) -> None:

@@ -336,19 +336,11 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                             a = sample_chunks(bundle, cfg.samples, imgs, prop, current["emb"], rng=rng, stage=told,
                                               **given)
                             turn, sure = shaper.turn, shaper.turn.sure
-                            steered, held, kept = shaper.regrasp.steered, shaper.guard.held, shaper.level.kept
                             a = shaper.chunk(a[:, bundle.execute], imgs, prop, stage, objects, request,
                                              current["task"] if seq is None else seq.family, t_obs * 1e-9,
                                              dt_ns * 1e-9, speed=1e9 / (dt_ns * data_hz))
-                            if shaper.regrasp.steered and not steered:  # the first steer of the command
-                                event("policy_grasp_steer", "info", "the fingers closed on nothing: the retry is "
-                                      "moved over the object the object query located")
-                            if shaper.guard.held and not held:  # the first hold of the command
-                                event("policy_release_guard", "info", "the policy opened the fingers on the object "
-                                      "far from where it goes: held closed and carried towards it")
-                            if shaper.level.kept and not kept:  # the first kept height of the command
-                                event("policy_handle_height", "info", "the chunks left the height the fingers "
-                                      "closed on the drawer's handle at: kept there while they hold it")
+                            for kind, words in shaper.firsts:  # a step's first change to this command's chunks
+                                event(kind, "info", words)
                             if turn.sure and not sure:  # the first sure answer, once per command
                                 deg = float(np.degrees(turn.turn))
                                 report["turn_deg"] = round(deg, 2)
