@@ -1,4 +1,4 @@
-"""runtime/chunk_shaper.py: the steps between the denoiser and the controller, run as `sudd eval` and the node run them."""
+"""runtime/chunk_shaper.py: the steps between the denoiser and the controller, as `sudd eval` and the node run them."""
 
 from types import SimpleNamespace
 
