@@ -339,10 +339,10 @@ def _job(job: dict) -> dict:
 def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
     from runtime.eval_filmstrip import Filmstrip
-    from runtime.shaping import shaping_of
     from runtime.eval_trace import Trace
     from runtime.evaluate import run_policy_episode
     from runtime.phases import phases_for
+    from runtime.shaping import shaping_of
 
     strip = Filmstrip() if s["filmstrips"] else None
     trace = Trace() if s.get("traces") else None

@@ -113,8 +113,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `shaping` which of the
     steps between the denoiser and the controller run, and the samples drawn per tick (runtime/chunk_shaper.py);
-    `trace` a
-    runtime.eval_trace.Trace to record every tick, chunk and event in."""
+    `trace` a runtime.eval_trace.Trace to record every tick, chunk and event in."""
     from policy.coherence import sample_chunks
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
