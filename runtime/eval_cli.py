@@ -132,7 +132,7 @@ def _eval(args) -> int:
     from policy.bundle import Bundle
     from policy.coherence import check_samples
     from runtime.controller import ControllerConfig, load_controller, with_bundle_levels
-    from runtime.eval_report import failure_table, markdown_table, plot, summarise
+    from runtime.eval_report import failure_table, markdown_table, plot, routing_note, summarise
     from policy.phased import resolve_phased
     from runtime.pace import check_speed_spec, resolve_pace
     from sim.seeding import resolve_seeds
@@ -218,6 +218,8 @@ def _eval(args) -> int:
     records = [r for r in read_results(results_path) if key(r) in wanted]
     rows = summarise(records)
     table = markdown_table(rows)
+    if routing_note(rows):
+        table += "\n\n" + routing_note(rows)
     why = failure_table(rows)
     if why:
         table += ("\n\nWhy the policy failed (no_grasp: held nothing; wrong_object: held only other objects; "
@@ -340,7 +342,8 @@ def _policy(job: dict, s: dict, holdout) -> dict:
     from policy.pace import Pace
     from runtime.eval_filmstrip import Filmstrip
     from runtime.eval_trace import Trace
-    from runtime.evaluate import run_policy_episode
+    from runtime.command_family import command_family
+    from runtime.evaluate import episode_command, run_policy_episode
     from runtime.phases import phases_for
     from runtime.shaping import shaping_of
 
@@ -348,15 +351,17 @@ def _policy(job: dict, s: dict, holdout) -> dict:
     trace = Trace() if s.get("traces") else None
     pace = Pace(s.get("pace", {}))
     bundle = _WORKER["bundle"]
-    phases = (phases_for(job["task"], pace, bundle.instructions, bundle.tasks) if job["task"] in s.get("phases", ())
-              else None)
+    # the family the policy node would run the command as: a paraphrase may be judged another's
+    command = episode_command(job["task"], job["seed"], s["dr"], holdout, paraphrase=job["suite"] == "paraphrase")
+    family = command_family(bundle, command)
+    phases = phases_for(family, pace, bundle.instructions, bundle.tasks) if family in s.get("phases", ()) else None
     try:
         out = run_policy_episode(bundle, job["task"], job["seed"], dr=s["dr"], holdout=holdout,
-                                 paraphrase=job["suite"] == "paraphrase", replan_every=s["replan_every"],
+                                 command=command, runs_as=family or "", replan_every=s["replan_every"],
                                  time_limit_factor=s["time_limit_factor"],
                                  latency_s=None if s["latency_ms"] is None else s["latency_ms"] / 1e3,
                                  controller=_WORKER["controller"], observer=strip,
-                                 speed=pace.speed(job["task"]), goal_query=s.get("goal_query", True),
+                                 speed=pace.speed(family), goal_query=s.get("goal_query", True),
                                  phases=phases, shaping=shaping_of(s),
                                  trace=trace).record()
         name = f"{job['suite']}_{job['task']}_{job['seed']}"

@@ -61,6 +61,7 @@ def summarise(records: list[dict]) -> list[dict]:
         yaw = sorted(median(t) for t in turned if t)
         ok, tnp = [r for r in rs if r["success"]], [r for r in rs if r.get("failure") == "target_not_placed"]
         drawer = [r["drawer_max"] for r in rs if not r["success"] and r.get("drawer_max") is not None]
+        other = [r for r in rs if r.get("runs_as", task) != task]  # records before runs_as: their own family
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
@@ -79,7 +80,10 @@ def summarise(records: list[dict]) -> list[dict]:
                      "release_outside_cm": {"success": _last_release_outside_cm(ok),
                                             "target_not_placed": _last_release_outside_cm(tnp)},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end"))),
-                     "failed_drawer_opened": sum(f >= OPEN_FRACTION for f in drawer) if drawer else None})
+                     "failed_drawer_opened": sum(f >= OPEN_FRACTION for f in drawer) if drawer else None,
+                     "runs_as_other": {f: [sum(1 for r in other if (r["runs_as"] or "none") == f),
+                                           sum(bool(r["success"]) for r in other if (r["runs_as"] or "none") == f)]
+                                       for f in sorted({r["runs_as"] or "none" for r in other})}})
     return rows
 
 
@@ -171,6 +175,17 @@ def failure_table(rows: list[dict]) -> str:
         cells.append("-" if opened is None else str(opened))
         lines.append(f"| {r['suite']} | {r['task']} | {r['n'] - r['successes']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def routing_note(rows: list[dict]) -> str:
+    """A sentence naming the episodes whose command the policy node would run as another family
+    (runtime.command_family), with how many of them succeeded; "" where every command ran as its own."""
+    parts = [f"{r['suite']} {r['task']} as {f}: {n} ({k} succeeded)"
+             for r in rows if r["who"] == "policy" for f, (n, k) in r.get("runs_as_other", {}).items()]
+    if not parts:
+        return ""
+    return ("Commands run as another family, judged as the policy node judges them (its closest trained "
+            "instruction's; runtime/command_family.py): " + "; ".join(parts) + ".")
 
 
 def _cell(r: dict | None) -> str:

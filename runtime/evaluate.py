@@ -88,6 +88,7 @@ class EpisodeOutcome:
     phase: int | None = None  # with phases: the last one reached (runtime.phases; None: one command)
     phase_starts: list[float] = field(default_factory=list)  # with phases: the sim time [s] each one began
     retreats: list[float] = field(default_factory=list)  # with phases: seconds each retreat to the start took
+    runs_as: str | None = None  # the family the command was run as (runtime.command_family; None: none known)
 
     def record(self) -> dict:
         out = asdict(self)
@@ -101,7 +102,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                        time_limit_factor: float = 1.0, latency_s: float | None = None,
                        controller: ControllerConfig | None = None, observer=None, speed: float = 1.0,
                        goal_query: bool = True, phases: list | None = None,
-                       shaping: Shaping = Shaping(),
+                       shaping: Shaping = Shaping(), runs_as: str | None = None,
                        trace=None) -> EpisodeOutcome:
     """Run one episode (see the module docstring). `command` overrides the episode's instruction;
     `paraphrase` replaces it by one of the family's unseen phrasings; `replan_every` policy ticks between
@@ -113,7 +114,9 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     (policy.object_query); `phases` (runtime.phases) run the command as skills, the
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `shaping` which of the
     steps between the denoiser and the controller run, and the samples drawn per tick (runtime/chunk_shaper.py);
-    `trace` a runtime.eval_trace.Trace to record every tick, chunk and event in."""
+    `runs_as` the family the command is run as, for the queries and the chunk steps (None: `task`; "": none;
+    `sudd eval` passes the one the policy node would judge it, runtime.command_family); `trace` a runtime.eval_trace.Trace to
+    record every tick, chunk and event in."""
     from policy.coherence import sample_chunks
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
@@ -130,14 +133,15 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     ep = build_episode(task, seed, dr, "fast", holdout=holdout)
     family, inst = ep.task, ep.instance
     if paraphrase:
-        command = family.paraphrase(inst, np.random.default_rng([seed, 7]))
+        command = _paraphrase(family, inst)
     text = command or ep.instruction
+    runs_as = task if runs_as is None else runs_as
     emb = bundle.embed(text)
     sequencer = Sequencer(phases, bundle.embed, emb, text) if phases else None
-    query = GoalQuery(bundle, text, task, enabled=goal_query)
-    objects = ObjectQuery(bundle, text, task, enabled=goal_query)
+    query = GoalQuery(bundle, text, runs_as, enabled=goal_query)
+    objects = ObjectQuery(bundle, text, runs_as, enabled=goal_query)
     look = Look(query)
-    turn = TurnQuery(bundle, text, task, enabled=goal_query)
+    turn = TurnQuery(bundle, text, runs_as, enabled=goal_query)
     shaper = ChunkShaper(turn, shaping)
     rng = np.random.default_rng([seed, 11])
     rig = SimRig(ep.world, "lockstep")
@@ -152,7 +156,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     To = bundle.obs_horizon
     budget = family.max_seconds * time_limit_factor
     target = _target_of(inst)
-    out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target, speed=speed)
+    out = EpisodeOutcome(task, int(seed), text, ep.instruction, False, 0.0, "timeout", target=target, speed=speed,
+                         runs_as=runs_as or None)
     events: Counter = Counter()
     progress = GraspProgress()
     cycles = GraspCycles()  # grasp cycles since the start, as the policy node counts them
@@ -202,7 +207,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                                                **given)
                         actions = shaper.chunk(chunks[:, bundle.execute], images, proprio, stage, objects,
                                                rig.world.gripper_command(),
-                                               task if sequencer is None else sequencer.family, t_obs * 1e-9,
+                                               runs_as if sequencer is None else sequencer.family, t_obs * 1e-9,
                                                dt_ns * 1e-9, speed=1e9 / (dt_ns * control_hz))
                     else:
                         shaper.forget()
@@ -262,6 +267,21 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     if progress.drawer_max is not None:
         out.drawer_max, out.drawer_end = round(progress.drawer_max, 3), round(progress.drawer_end, 3)
     return out
+
+
+def episode_command(task: str, seed: int, dr: str = "heavy", holdout: Holdout = Holdout(),
+                    paraphrase: bool = False) -> str:
+    """The command `run_policy_episode(task, seed, ..., paraphrase=)` gives the policy, without building the world."""
+    from sim.build import task_instance
+    from sim.tasks import get_task
+
+    family = get_task(task)
+    inst = task_instance(family, seed, dr, holdout)
+    return _paraphrase(family, inst) if paraphrase else inst.instruction
+
+
+def _paraphrase(family, inst) -> str:
+    return family.paraphrase(inst, np.random.default_rng([inst.seed, 7]))
 
 
 @functools.lru_cache(maxsize=4)

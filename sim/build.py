@@ -57,8 +57,7 @@ def build_episode(task: str | TaskFamily | None = None, seed: int = 0, dr: str |
     spec = base_scene(variant)
     instance = None
     if family is not None:
-        instance = family.sample(rngs.layout, cfg, holdout)
-        instance.seed = int(seed)
+        instance = _sample(family, rngs, cfg, holdout)
         family.build(spec, instance)
     apply_fidelity(spec, fidelity)
     dr_record = randomize_spec(spec, cfg, rngs.visual, rngs.physics)
@@ -71,6 +70,20 @@ def build_episode(task: str | TaskFamily | None = None, seed: int = 0, dr: str |
         world.step(int(round(SETTLE_SECONDS / world.timestep)))
         world.data.time = 0.0
     return Episode(world, family, instance, rngs, cfg, dr_record)
+
+
+def _sample(family: TaskFamily, rngs: EpisodeRngs, cfg: DRConfig, holdout: Holdout) -> TaskInstance:
+    instance = family.sample(rngs.layout, cfg, holdout)
+    instance.seed = int(rngs.seed)
+    return instance
+
+
+def task_instance(task: str | TaskFamily, seed: int, dr: str | DRConfig = "off",
+                  holdout: Holdout = Holdout()) -> TaskInstance:
+    """The task instance `build_episode` would set up (the same objects, targets and instruction), without
+    building its world: the layout draws from a stream of its own (sim.seeding)."""
+    family = get_task(task) if isinstance(task, str) else task
+    return _sample(family, episode_rngs(seed), load_dr(dr), holdout)
 
 
 def build_world(task: str | TaskFamily | None = None, seed: int = 0, dr: str | DRConfig = "off",

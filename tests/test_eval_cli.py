@@ -5,6 +5,8 @@ import json
 
 import pytest
 
+PUT = "put the red block in the drawer and close it"  # a drawer_put instruction, for a bundle taught one
+
 
 def test_eval_cli_writes_results_and_resumes(untrained_bundle, tmp_path, monkeypatch, capsys):
     from runtime.cli import main
@@ -85,8 +87,10 @@ def test_eval_cli_runs_the_episodes_with_the_controller_file(untrained_bundle, t
 
 
 def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_ones(untrained_bundle, tmp_path,
-                                                                                      episode_kwargs, capsys):
+                                                                                      episode_kwargs, capsys,
+                                                                                      monkeypatch):
     from runtime.cli import main
+    from sim.tasks import task_of_instruction
 
     base = ["eval", "--policy", str(untrained_bundle), "--task", "pick_place", "--episodes", "1", "--no-collector",
             "--time-limit-factor", "0.03"]
@@ -112,12 +116,19 @@ def test_eval_cli_passes_a_fixed_latency_speed_and_filmstrips_and_refuses_bad_on
                  "--out", str(tmp_path / "f")]) == 0
     from runtime.phases import Phase
 
+    # the untrained bundle knows no drawer command: as the policy node would, the eval runs it as its closest
+    # trained instruction's family, pick_place, and so as one command
+    assert [(kw["runs_as"], kw["phases"]) for kw in episode_kwargs[-2:]] == [("pick_place", None)] * 2
+    monkeypatch.setattr("runtime.command_family.command_family", lambda bundle, text: task_of_instruction(text))
+    assert main([*base, "--task", "drawer_put", "--phases", "--speed", "drawer_open=0.75",
+                 "--out", str(tmp_path / "g")]) == 0
     by_task = {kw["phases"] is not None: kw for kw in episode_kwargs[-2:]}  # pick_place, then drawer_put
+    assert by_task[True]["runs_as"] == "drawer_put"
     assert by_task[False]["speed"] == 1.0  # pick_place is one command whatever --phases says
     assert by_task[True]["phases"] == [Phase("open the drawer", 0.75, family="drawer_open"),
                                        Phase(None, 1.0, family="drawer_put"),
                                        Phase("close the drawer", 1.0, stage_from=2, family="drawer_close")]
-    told = (tmp_path / "f" / "results.md").read_text()
+    told = (tmp_path / "g" / "results.md").read_text()
     assert "Run as their phases (runtime/phases.py; --phases): drawer_put" in told
     assert main([*base, "--speed", "drawer_shut=0.5", "--out", str(tmp_path / "d")]) == 2
     assert "--speed.drawer_shut: unknown task family" in capsys.readouterr().err
@@ -135,12 +146,14 @@ def test_eval_cli_runs_the_families_the_bundle_lists_as_phases_unless_told_other
     phased = linked_copy(untrained_bundle, tmp_path / "phased")
     m = json.loads((phased / "manifest.json").read_text())
     (phased / "manifest.json").write_text(json.dumps({**m, "tasks": [*m["tasks"], "drawer_put"],
+                                                      "instructions": [*m["instructions"], PUT],
                                                       "phased": ["drawer_put"]}))
     base = ["eval", "--policy", str(phased), "--task", "drawer_put", "--episodes", "1", "--no-collector",
             "--time-limit-factor", "0.03"]
     assert main([*base, "--out", str(tmp_path / "a")]) == 0
     assert main([*base, "--no-phases", "--out", str(tmp_path / "b")]) == 0
     assert [kw["phases"] is not None for kw in episode_kwargs] == [True, False]
+    assert [kw["runs_as"] for kw in episode_kwargs] == ["drawer_put"] * 2  # its closest trained instruction's
     assert len(episode_kwargs[0]["phases"]) == 3
     summaries = [json.loads((tmp_path / d / "summary.json").read_text()) for d in "ab"]
     assert [s["settings"]["phases"] for s in summaries] == [["drawer_put"], []]
