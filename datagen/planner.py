@@ -33,7 +33,7 @@ _PICK = re.compile(r"^(?:pick up|pick|grab|lift|lift up)\s+(?P<obj>.+?)(?:\s+up)
 _OPEN_DEST = re.compile(r"^((?:the|a|an)\s+)?(?:open|opened)\s+")
 _ARTICLE = re.compile(r"^(?:the|a|an)\s+")
 _SYNONYMS = {"centre": "middle", "center": "middle", "cube": "block", "rod": "bar", "stick": "bar",
-             "can": "cylinder"}
+             "can": "cylinder", "sphere": "ball"}
 
 
 class UnknownTaskError(PlanError):

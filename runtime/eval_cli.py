@@ -24,10 +24,12 @@ suites (each on seeds OFFSET..OFFSET+N-1; keep OFFSET away from the training see
   seen        the training distribution: objects and phrasings as in the data
   heldout     the target object has a colour/shape the data never had (recorded in the bundle from
               `sudd datagen --holdout-color/--holdout-shape`, or given here)
+  heldout_shape  the target is a ball, a shape no training scene ever held, in a colour the data had
+              (not for stack: a ball on a block is no stack)
   paraphrase  the command in a phrasing the data never used (the task family's `paraphrases`)
 
 the data collector (planner + primitives + verify-and-retry with privileged state, `sudd datagen`'s policy,
-its fingers moved as the gripper twin's are) runs on the same seeds for `seen` and `heldout`; it cannot parse
+its fingers moved as the gripper twin's are) runs on the same seeds for `seen` and the held-out suites; it cannot parse
 unseen phrasings, so not for `paraphrase`.
 
 examples:
@@ -60,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="exactly these seeds for every task instead of --episodes/--seed-offset: e.g. "
                          "100003,100015,100240-100259, or a file of them (one or more per line, # comments); to "
                          "re-run a bundle's failures, or a chosen part of the randomization")
-    ev.add_argument("--suite", action="append", default=[], choices=["seen", "heldout", "paraphrase"],
+    ev.add_argument("--suite", action="append", default=[], choices=["seen", "heldout", "heldout_shape", "paraphrase"],
                     help="what to test (repeatable; default: seen)")
     ev.add_argument("--holdout-color", action="append", default=[], metavar="COLOR",
                     help="colour kept out of the training data (default: what the bundle's data recorded); the "
@@ -166,9 +168,15 @@ def _eval(args) -> int:
                          "--holdout-color/--holdout-shape (what `sudd datagen` kept out)")
     jobs = []  # seed-major: an eval stopped early (Ctrl-C, a deadline) has every task at about as many seeds
     mode = "realtime" if args.realtime else "lockstep"
+    unshaped = [t for t in tasks if not get_task(t).novel_shapes] if "heldout_shape" in suites else []
+    if unshaped:
+        print(f"--suite heldout_shape: not for {', '.join(unshaped)} (no target a ball could stand for)",
+              file=sys.stderr)
     for suite in suites:
         for seed in seeds:
             for task in tasks:
+                if suite == "heldout_shape" and task in unshaped:
+                    continue
                 jobs.append({"suite": suite, "task": task, "seed": seed, "who": "policy", "mode": mode})
                 if not args.no_collector and suite != "paraphrase":
                     jobs.append({"suite": suite, "task": task, "seed": seed, "who": "collector",
@@ -324,12 +332,10 @@ def _init(settings: dict) -> None:
 
 
 def _job(job: dict) -> dict:
-    from sim.tasks import Holdout
+    from runtime.evaluate import suite_holdout
 
     s = _WORKER["settings"]
-    h = s["holdout"]
-    holdout = Holdout(colors=tuple(h["colors"]), shapes=tuple(h["shapes"]),
-                      split="eval_heldout" if job["suite"] == "heldout" else "train")
+    holdout = suite_holdout(job["suite"], s["holdout"])
     t0 = time.perf_counter()
     if job["who"] == "policy":
         out = _policy(job, s, holdout)

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from runtime.controller import ControllerConfig
 from runtime.shaping import shaping_of
 
@@ -30,24 +28,22 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
     """One policy episode of `sudd eval --realtime` (see the module docstring): a record for eval_report."""
     from runtime import bus as B
     from runtime.launch import Launcher, sim_stack
-    from sim.build import build_episode
-    from sim.tasks import Holdout, get_task
+    from runtime.evaluate import episode_command, suite_holdout
+    from sim.tasks import get_task
 
     task, seed = job["task"], int(job["seed"])
     h = settings["holdout"]
-    split = "eval_heldout" if job["suite"] == "heldout" else "train"
+    holdout = suite_holdout(job["suite"], h)
     command = ""
     if job["suite"] == "paraphrase":  # the same phrasing the lockstep eval gives this seed
-        ep = build_episode(task, seed, settings["dr"], "fast", holdout=Holdout(colors=tuple(h["colors"]),
-                                                                                  shapes=tuple(h["shapes"])))
-        command = ep.task.paraphrase(ep.instance, np.random.default_rng([seed, 7]))
+        command = episode_command(task, seed, settings["dr"], holdout, paraphrase=True)
     limit_s = get_task(task).max_seconds * settings["time_limit_factor"]
     specs = sim_stack(settings["bundle"], task=task, seed=seed, dr=settings["dr"], command=command,
                       replan_every=settings["replan_every"], speed=settings["speed"],
                       goal_query=settings["goal_query"], phases=task in settings["phases"],
                       shaping=shaping_of(settings),
-                      controller=controller, holdout_colors=tuple(h["colors"]), holdout_shapes=tuple(h["shapes"]),
-                      holdout_split=split)
+                      controller=controller, holdout_colors=holdout.colors, holdout_shapes=holdout.shapes,
+                      holdout_split=holdout.split)
     seen: set[str] = set()
 
     def on_event(msg) -> None:

@@ -19,6 +19,7 @@ Z95 = 1.959963984540054
 SUITES = {
     "seen": "held-out seeds, training objects and phrasings",
     "heldout": "held-out seeds, target of a held-out colour/shape",
+    "heldout_shape": "held-out seeds, target of a shape no training scene held (a ball)",
     "paraphrase": "held-out seeds, an unseen phrasing of the command",
 }
 

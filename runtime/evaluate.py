@@ -115,8 +115,8 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     phase and its text and pace chosen by the grasp cycles so far (`speed` then unused); `shaping` which of the
     steps between the denoiser and the controller run, and the samples drawn per tick (runtime/chunk_shaper.py);
     `runs_as` the family the command is run as, for the queries and the chunk steps (None: `task`; "": none;
-    `sudd eval` passes the one the policy node would judge it, runtime.command_family); `trace` a runtime.eval_trace.Trace to
-    record every tick, chunk and event in."""
+    `sudd eval` passes the one the policy node would judge it, runtime.command_family); `trace` a
+    runtime.eval_trace.Trace to record every tick, chunk and event in."""
     from policy.coherence import sample_chunks
     from policy.goal_query import GoalQuery
     from policy.object_query import ObjectQuery
@@ -267,6 +267,18 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     if progress.drawer_max is not None:
         out.drawer_max, out.drawer_end = round(progress.drawer_max, 3), round(progress.drawer_end, 3)
     return out
+
+
+def suite_holdout(suite: str, held: dict) -> Holdout:
+    """The holdout a suite's scenes are built with: `held` {"colors", "shapes"} (what the bundle's data kept out)
+    stay out of the scene; "heldout" makes the target one of them, "heldout_shape" a shape no data ever had
+    (sim.tasks.base.NOVEL_SHAPES) in a colour the data had."""
+    from sim.tasks.base import NOVEL_SHAPES
+
+    colors, shapes = tuple(held.get("colors", ())), tuple(held.get("shapes", ()))
+    if suite == "heldout_shape":
+        return Holdout(colors=colors, shapes=tuple(dict.fromkeys(shapes + NOVEL_SHAPES)), split="eval_heldout_shape")
+    return Holdout(colors=colors, shapes=shapes, split="eval_heldout" if suite == "heldout" else "train")
 
 
 def episode_command(task: str, seed: int, dr: str = "heavy", holdout: Holdout = Holdout(),

@@ -1,4 +1,4 @@
-"""Task objects built from parameters: blocks, cylinders, bins, a drawer cabinet and a box with a hinged lid.
+"""Task objects built from parameters: blocks, cylinders, balls, bins, a drawer cabinet and a box with a hinged lid.
 
 Each builder adds one body tree to the scene's worldbody and returns the top body. Names are the contract
 with tasks and success predicates: the top body is `name`; a drawer's sliding part is `{name}/drawer` on the
@@ -49,6 +49,15 @@ def add_cylinder(spec, name: str, radius: float, half_height: float, rgba, at: P
     body.add_freejoint(name=f"{name}/free")
     body.add_geom(name=f"{name}/geom", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[radius, half_height, 0],
                   mass=mass, material=_material(spec, f"{name}/mat", rgba), friction=_OBJECT_FRICTION, condim=4)
+    return body
+
+
+def add_sphere(spec, name: str, radius: float, rgba, at: Placement, mass: float = 0.08) -> mujoco.MjsBody:
+    """A free-floating ball resting on the table."""
+    body = spec.worldbody.add_body(name=name, pos=[at.x, at.y, radius + 1e-4], quat=at.quat())
+    body.add_freejoint(name=f"{name}/free")
+    body.add_geom(name=f"{name}/geom", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius, 0, 0], mass=mass,
+                  material=_material(spec, f"{name}/mat", rgba), friction=_OBJECT_FRICTION, condim=4)
     return body
 
 

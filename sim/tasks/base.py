@@ -21,21 +21,32 @@ from sim.objects import Placement
 from sim.scene import TASK_AREA
 
 SHAPES = ("block", "cylinder", "bar")
+# Shapes no training scene ever holds: the held-out shape suite's targets (split "eval_heldout_shape"). Kept out
+# of SHAPES so that adding one changes no seed's scene. The ball is 5.6 cm across: a sphere is held only at its
+# equator, and one 4.8 cm across puts that lower than the safety layer lets the fingertips go over the table.
+NOVEL_SHAPES = ("ball",)
 OBJECT_COLORS = ("red", "orange", "yellow", "green", "blue", "purple", "pink", "white")
-_SHAPE_SIZE = {"block": (0.022, 0.022, 0.022), "cylinder": (0.022, 0.024), "bar": (0.045, 0.018, 0.018)}
+_SHAPE_SIZE = {"block": (0.022, 0.022, 0.022), "cylinder": (0.022, 0.024), "bar": (0.045, 0.018, 0.018),
+               "ball": (0.028,)}
+SPLITS = ("train", "eval_heldout", "eval_heldout_shape")
 
 
 @dataclass(frozen=True)
 class Holdout:
-    """Colours/shapes kept out of training; `split="eval_heldout"` makes the task's target use only them."""
+    """Colours/shapes kept out of training. `split="eval_heldout"` makes the task's target use only them;
+    `"eval_heldout_shape"` gives it a held-out shape (NOVEL_SHAPES are allowed then) in a colour the data had."""
 
     colors: tuple[str, ...] = field(default=(), metadata=spec(choices=tuple(COLOR_CLASSES)))
-    shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES))
-    split: str = field(default="train", metadata=spec(choices=("train", "eval_heldout")))
+    shapes: tuple[str, ...] = field(default=(), metadata=spec(choices=SHAPES + NOVEL_SHAPES))
+    split: str = field(default="train", metadata=spec(choices=SPLITS))
 
     def allowed(self, pool: tuple[str, ...], held: tuple[str, ...], for_target: bool) -> tuple[str, ...]:
-        if self.split == "eval_heldout" and for_target and held:
-            return tuple(p for p in pool if p in held)
+        if self.split != "train" and for_target and held:
+            out = tuple(p for p in pool if p in held)
+            if not out:
+                raise ConfigError(f"held-out {list(held)}: none of them can be this task's target (it takes "
+                                  f"{list(pool)})")
+            return out
         out = tuple(p for p in pool if p not in held)
         if not out:
             raise ConfigError(f"holdout leaves no choice among {list(pool)}; hold out fewer")
@@ -60,12 +71,14 @@ class ObjectSpec:
     def build(self, spec: mujoco.MjSpec) -> None:
         if self.shape == "cylinder":
             obj.add_cylinder(spec, self.name, self.size[0], self.size[1], self.rgba, self.placement)
+        elif self.shape == "ball":
+            obj.add_sphere(spec, self.name, self.size[0], self.rgba, self.placement)
         else:
             obj.add_block(spec, self.name, self.size, self.rgba, self.placement)
 
     @property
     def half_height(self) -> float:
-        return self.size[1] if self.shape == "cylinder" else self.size[2]
+        return {"cylinder": self.size[1], "ball": self.size[0]}.get(self.shape, self.size[-1])
 
 
 @dataclass
@@ -98,6 +111,9 @@ class TaskFamily:
     # Phrasings never used to generate data: the evaluation's unseen-command test (same `{...}` fields).
     paraphrases: ClassVar[tuple[str, ...]] = ()
     max_seconds: ClassVar[float] = 30.0  # a generous episode time limit for oracles and policies
+    # The never-trained shapes its target may take in the held-out shape suite (stack: none, a ball on a block
+    # is no stack).
+    novel_shapes: ClassVar[tuple[str, ...]] = NOVEL_SHAPES
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
         raise NotImplementedError
@@ -135,14 +151,18 @@ class TaskFamily:
 
 
 def sample_objects(rng: np.random.Generator, dr: DRConfig, holdout: Holdout, count: int, slots: list[Placement],
-                   target_shapes: tuple[str, ...] = SHAPES, prefix: str = "obj") -> list[ObjectSpec]:
-    """`count` objects with distinct (colour, shape) phrases; the first is the task's target."""
+                   target_shapes: tuple[str, ...] = SHAPES, prefix: str = "obj",
+                   novel_shapes: tuple[str, ...] = NOVEL_SHAPES) -> list[ObjectSpec]:
+    """`count` objects with distinct (colour, shape) phrases; the first is the task's target, in the held-out
+    shape split one of `novel_shapes` (those held out) in a colour the data had."""
+    novel = holdout.split == "eval_heldout_shape"
     chosen: list[ObjectSpec] = []
     used: set[tuple[str, str]] = set()
     for i in range(count):
         target = i == 0
-        shapes = holdout.allowed(target_shapes if target else SHAPES, holdout.shapes, target)
-        colors = holdout.allowed(OBJECT_COLORS, holdout.colors, target)
+        pool = (target_shapes + (novel_shapes if novel else ())) if target else SHAPES
+        shapes = holdout.allowed(pool, holdout.shapes, target)
+        colors = holdout.allowed(OBJECT_COLORS, holdout.colors, target and not novel)
         for _ in range(100):
             shape, color = str(rng.choice(shapes)), str(rng.choice(colors))
             if (shape, color) not in used and all(c.color != color for c in chosen):

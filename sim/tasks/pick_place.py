@@ -28,7 +28,7 @@ def grasp_yaw(o, rotation) -> float:
 
 def footprint_period(obj) -> float | None:
     """The smallest turn about the vertical that maps the object's footprint onto itself; None for a round one."""
-    if obj.shape == "cylinder":
+    if obj.shape in ("cylinder", "ball"):
         return None
     sx, sy = obj.size[:2]
     return np.pi / 2 if abs(sx - sy) <= 0.05 * max(sx, sy) else np.pi

@@ -26,13 +26,15 @@ class Stack(TaskFamily):
         "could you put the {top} onto the {bottom}",
     )
 
+    novel_shapes = ()
+
     def fields(self, inst: TaskInstance) -> dict[str, str]:
         return {"top": inst.obj(inst.params["top"]).phrase, "bottom": inst.obj(inst.params["bottom"]).phrase}
 
     def sample(self, rng: np.random.Generator, dr: DRConfig, holdout: Holdout = Holdout()) -> TaskInstance:
         n = int(rng.integers(2, 5))
         slots = sample_slots(rng, dr, n, REGION, min_gap=0.1)
-        objects = sample_objects(rng, dr, holdout, n, slots, target_shapes=("block",))
+        objects = sample_objects(rng, dr, holdout, n, slots, target_shapes=("block",), novel_shapes=self.novel_shapes)
         # The base of the stack is a block too: pick it among the others, or make the second one a block.
         others = [o for o in objects[1:] if o.shape == "block"]
         if not others:
