@@ -60,7 +60,8 @@ class RobotNodeConfig:
     # (`sudd datagen --holdout-color`), so `sudd run --sim --seed K` builds the scene `sudd eval` runs as seed K.
     holdout_colors: tuple[str, ...] = ()
     holdout_shapes: tuple[str, ...] = ()
-    holdout_split: str = "train"  # "eval_heldout": the target only of them (`sudd eval --realtime --suite heldout`)
+    # "eval_heldout": the target only of them (`sudd eval --realtime --suite heldout`); "eval_heldout_shape": a ball
+    holdout_split: str = "train"
     cameras: tuple[str, ...] = ("scene", "wrist")  # the bundle's camera names (sim cameras to publish)
     image_size: tuple[int, int] = (128, 128)  # (H, W) of the sim cameras
     camera_fps: float = 20.0  # twice the policy rate: the policy always finds a frame a few ms old
