@@ -22,12 +22,13 @@ from sim.scene import TASK_AREA
 
 SHAPES = ("block", "cylinder", "bar")
 # Shapes no training scene ever holds: the held-out shape suite's targets (split "eval_heldout_shape"). Kept out
-# of SHAPES so that adding one changes no seed's scene. The ball is 5.6 cm across: a sphere is held only at its
-# equator, and one 4.8 cm across puts that lower than the safety layer lets the fingertips go over the table.
+# of SHAPES so that adding one changes no seed's scene. The ball is 6.4 cm across (5.4-7.4 under heavy DR's size
+# scale): a sphere is held only at its equator, and on one under 5.2 cm across that lies lower than the safety
+# layer lets the fingertips go over the table (the collector finds no grasp).
 NOVEL_SHAPES = ("ball",)
 OBJECT_COLORS = ("red", "orange", "yellow", "green", "blue", "purple", "pink", "white")
 _SHAPE_SIZE = {"block": (0.022, 0.022, 0.022), "cylinder": (0.022, 0.024), "bar": (0.045, 0.018, 0.018),
-               "ball": (0.028,)}
+               "ball": (0.032,)}
 SPLITS = ("train", "eval_heldout", "eval_heldout_shape")
 
 
