@@ -191,6 +191,18 @@ def test_when_chunks_stop_arriving_the_arm_decelerates_and_holds():
     assert np.ptp(d2["tcp"][-200:], axis=0).max() < 1e-4  # holding still
 
 
+def test_waiting_for_the_first_chunk_is_no_stale_command_but_a_policy_that_stops_is():
+    rig, loop, p0, R = make()
+    d0 = run(rig, loop, 500)  # 1 s before any chunk: the arm holds where it started, silently
+    assert np.max(np.abs(d0["qd"][-1])) < 1e-3 and "stale_command" not in {e.kind for e in loop.drain_events()}
+    t0 = rig.now_ns() * 1e-9
+    path = line(p0, t0 + 0.2, direction=(0.0, 0.0, 1.0), length=1.0)
+    run(rig, loop, 300, lambda now: chunk(now, path, R, n=8), every=0.2)
+    assert "stale_command" not in {e.kind for e in loop.drain_events()}  # the start-up hold's summary too
+    run(rig, loop, 600)  # then the policy dies mid-motion
+    assert "stale_command" in {e.kind for e in loop.drain_events()}
+
+
 # ---- stops ------------------------------------------------------------------------------------------------
 def test_protective_stop_stops_commands_and_recovers_through_the_sequence():
     from dataclasses import replace

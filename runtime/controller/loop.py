@@ -91,6 +91,7 @@ class ControllerLoop(LoopRunner):
         self._stopping = False
         self._halted = False  # the robot is in a safety mode other than normal/reduced/protective/e-stop
         self._filter_started = False  # the filter has a commanded stream (after its first step)
+        self._first_plan: float | None = None  # when the first chunk was adopted (see _idle_stale)
         self._next_estimate = -math.inf
         self._stop_req = threading.Event()
         self._thread: threading.Thread | None = None
@@ -196,6 +197,7 @@ class ControllerLoop(LoopRunner):
         if jc is not None and stops.allows_motion and not self._stopping:
             try:
                 dropped = self.timeline.adopt(jc, t_eval, self._fallback_q())
+                self._first_plan = now if self._first_plan is None else self._first_plan
                 if dropped:
                     self._emit("chunk_late", now, f"chunk arrived late: {dropped} past action(s) dropped, entered "
                                                   f"{t_eval - jc.times[0]:.3f} s after its first", "info")
@@ -265,8 +267,14 @@ class ControllerLoop(LoopRunner):
             r = self.safety.step(desired, s.q, s.qd, t, ct)
         except Exception as exc:
             raise _Refused() from exc
-        self._events.extend(r.events)
+        self._events.extend(e for e in r.events if not self._idle_stale(e))
         return desired, ct, r
+
+    def _idle_stale(self, event) -> bool:
+        """A stale-command event that began before the first chunk: the watchdog's stop policy holds the arm where
+        it started, as it should, but no command went stale; said at every start-up it taught operators to ignore
+        the warning that matters, a policy that stops sending mid-motion."""
+        return event.kind == "stale_command" and (self._first_plan is None or event.start < self._first_plan)
 
     def _update_latency(self, now: float) -> float:
         if self.cfg.adapt_latency and now >= self._next_estimate:
