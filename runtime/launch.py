@@ -152,6 +152,9 @@ class Launcher:
         self.ready_timeout_s, self.robot_stop_timeout_s, self.grace_s = ready_timeout_s, robot_stop_timeout_s, grace_s
         self._ctx = mp.get_context("spawn")
         self._q = self._ctx.Queue()
+        # set when a shutdown starts, before the robot node's controlled stop: the other nodes then expect their
+        # inputs to stop and say nothing of it (runtime.nodes.common.NodeContext.winding_down)
+        self._winding = self._ctx.Event()
         self.procs: dict[str, mp.Process] = {}
         self.stops: dict = {}
         self.ready_info: dict[str, dict] = {}
@@ -187,7 +190,7 @@ class Launcher:
         for s in self.specs:
             ev = self._ctx.Event()
             p = self._ctx.Process(target=process_entry, name=f"sudd-{s.name}",
-                                  args=(s.module, config_to_dict(s.config), s.name, self._q, ev))
+                                  args=(s.module, config_to_dict(s.config), s.name, self._q, ev, self._winding))
             p.start()
             self.procs[s.name], self.stops[s.name] = p, ev
         return self
@@ -286,6 +289,7 @@ class Launcher:
         self._down = True
         self.shutdown_reason = self.shutdown_reason or reason
         t0 = time.monotonic()
+        self._winding.set()
         robot = self.procs.get(ROBOT)
         if robot is not None and robot.is_alive():
             self.stops[ROBOT].set()

@@ -55,9 +55,10 @@ class BusSettings:
 class NodeContext:
     """Stop request, ready signal and parent watch of one node (see the module docstring)."""
 
-    def __init__(self, name: str, stop_event=None, ready_cb=None, watch_parent: bool = False):
+    def __init__(self, name: str, stop_event=None, ready_cb=None, watch_parent: bool = False, winding_event=None):
         self.name = name
         self.stop_event = stop_event if stop_event is not None else threading.Event()
+        self.winding_event = winding_event  # the launcher's shutdown has begun (winding_down)
         self._ready_cb = ready_cb
         self._watch_parent = watch_parent
         self._parent_pid = os.getppid()
@@ -81,6 +82,11 @@ class NodeContext:
             self.request_stop("launcher died")
             return True
         return False
+
+    def winding_down(self) -> bool:
+        """The stack is stopping: this node's stop, or the launcher's shutdown begun (the robot node stops first, so
+        its state and frames end while the other nodes still run; that is no fault to warn of)."""
+        return self.should_stop() or (self.winding_event is not None and self.winding_event.is_set())
 
     def sleep_until(self, t_mono: float) -> bool:
         """Sleep until time.monotonic() >= t_mono or a stop; True if stopping."""
@@ -121,7 +127,7 @@ def percentiles(xs, scale: float = 1.0) -> dict:
             "n": int(a.size)}
 
 
-def process_entry(module: str, cfg_dict: dict, name: str, status_q, stop_event) -> None:
+def process_entry(module: str, cfg_dict: dict, name: str, status_q, stop_event, winding_event=None) -> None:
     """multiprocessing (spawn) target: run `module.run(cfg, ctx)`, reporting ready/exit on `status_q`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop_event.set())
@@ -129,7 +135,8 @@ def process_entry(module: str, cfg_dict: dict, name: str, status_q, stop_event) 
                         format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
     mod = importlib.import_module(module)
     cfg = config_from_dict(mod.CONFIG, cfg_dict)
-    ctx = NodeContext(name, stop_event, lambda info: status_q.put((name, "ready", info)), watch_parent=True)
+    ctx = NodeContext(name, stop_event, lambda info: status_q.put((name, "ready", info)), watch_parent=True,
+                      winding_event=winding_event)
     report: dict = {"ok": False}
     try:
         report = mod.run(cfg, ctx) or {}

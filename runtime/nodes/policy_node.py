@@ -283,10 +283,10 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
             elif st_t is None or now_ns - st_t > cfg.max_state_age_s * 1e9:
                 problem = f"no robot state newer than {cfg.max_state_age_s:.2f} s"
             if problem != stale_state:
-                if problem:
+                if problem and not ctx.winding_down():  # a shutdown stops the robot node first: no fault
                     event("policy_stale_input", "warning", f"{problem}: no chunks until inputs are fresh "
                                                            "(the controller holds)")
-                elif stale_state is not None:
+                elif not problem and stale_state is not None:
                     event("policy_resumed", "info", "inputs are fresh again")
                 stale_state = problem
             if problem:
