@@ -62,7 +62,8 @@ def summarise(records: list[dict]) -> list[dict]:
         yaw = sorted(median(t) for t in turned if t)
         ok, tnp = [r for r in rs if r["success"]], [r for r in rs if r.get("failure") == "target_not_placed"]
         drawer = [r["drawer_max"] for r in rs if not r["success"] and r.get("drawer_max") is not None]
-        other = [r for r in rs if r.get("runs_as", task) != task]  # records before runs_as: their own family
+        # (family run as, succeeded) of the commands run as another; records before runs_as ran as their own
+        other = Counter((r["runs_as"] or "none", bool(r["success"])) for r in rs if r.get("runs_as", task) != task)
         rows.append({"suite": suite, "task": task, "who": who, "n": len(rs), "successes": k, "rate": k / len(rs),
                      "ci95": [lo, hi], "median_success_s": times[len(times) // 2] if times else None,
                      "inference_p50_ms": infer[len(infer) // 2] if infer else None,
@@ -82,9 +83,8 @@ def summarise(records: list[dict]) -> list[dict]:
                                             "target_not_placed": _last_release_outside_cm(tnp)},
                      "target_ends": dict(Counter(r["target_end"] for r in rs if r.get("target_end"))),
                      "failed_drawer_opened": sum(f >= OPEN_FRACTION for f in drawer) if drawer else None,
-                     "runs_as_other": {f: [sum(1 for r in other if (r["runs_as"] or "none") == f),
-                                           sum(bool(r["success"]) for r in other if (r["runs_as"] or "none") == f)]
-                                       for f in sorted({r["runs_as"] or "none" for r in other})}})
+                     "runs_as_other": {f: [other[f, True] + other[f, False], other[f, True]]
+                                       for f in sorted({f for f, _ in other})}})
     return rows
 
 

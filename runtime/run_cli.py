@@ -197,14 +197,16 @@ def _run(args) -> int:
             print(f"sudd run: a node failed to start: {exc}", file=sys.stderr)
             return 1
         from runtime import bus as B
+        from runtime.chunk_shaper import FIRST_WORDS
+
+        shown = {"policy_phase", "policy_goal_point", "policy_look"} | {kind for _, _, kind, _ in FIRST_WORDS}
 
         def on_event(msg) -> None:
             events.append(msg)
             if msg.kind == "task_success":
                 succeeded["v"] = True
             if msg.severity in ("warning", "error", "critical") or msg.kind.startswith(("command", "task")) \
-                    or msg.kind in ("policy_phase", "policy_goal_point", "policy_look", "policy_grasp_steer",
-                                    "policy_release_guard", "policy_handle_height"):
+                    or msg.kind in shown:
                 print(f"[{msg.severity}] {msg.kind}: {msg.message}", file=sys.stderr)
 
         la.bus.subscribe(B.SAFETY_EVENT, on_event)

@@ -197,7 +197,8 @@ class ControllerLoop(LoopRunner):
         if jc is not None and stops.allows_motion and not self._stopping:
             try:
                 dropped = self.timeline.adopt(jc, t_eval, self._fallback_q())
-                self._first_plan = now if self._first_plan is None else self._first_plan
+                if self._first_plan is None:
+                    self._first_plan = now
                 if dropped:
                     self._emit("chunk_late", now, f"chunk arrived late: {dropped} past action(s) dropped, entered "
                                                   f"{t_eval - jc.times[0]:.3f} s after its first", "info")
