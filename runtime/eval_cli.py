@@ -43,6 +43,24 @@ examples:
 """
 
 
+# The runtime's steps between the denoiser and the controller (runtime/shaping.py), each on; --no-NAME turns one off.
+STEP_FLAGS = (
+    ("served-pause", "play every chunk with its leading pause, even where the arm has already held still longer "
+                     "than any pause of the collector's (runtime/served_pause.py)"),
+    ("finger-wait", "let the arm follow the chunks while the fingers are still closing or opening, instead of "
+                    "holding it until they stop (runtime/finger_wait.py)"),
+    ("grasp-steer", "leave a retry after a close on nothing to the policy, instead of moving its approach over the "
+                    "object the object query located (runtime/grasp_steer.py)"),
+    ("release-guard", "let the policy open the fingers on the object anywhere, instead of holding back an opening in "
+                      "the air far from the object query's drop point and carrying the object there "
+                      "(runtime/release_guard.py)"),
+    ("handle-height", "let the arm sink or rise while the fingers hold a drawer's handle, instead of keeping the "
+                      "height they closed at (runtime/handle_height.py)"),
+    ("free-pace", "play a slowed family (the drawers) at its pace everywhere, instead of at speed 1 while the hand "
+                  "is high above the cell's fixtures (runtime/free_pace.py)"),
+)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     from runtime import phases
 
@@ -86,25 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "or object query (policy/object_query.py) would replace them: to measure what the queries "
                          "buy on the same seeds")
     ev.add_argument("--phases", action=argparse.BooleanOptionalAction, default=None, help=phases.HELP)
-    ev.add_argument("--no-served-pause", action="store_true",
-                    help="play every chunk with its leading pause, even where the arm has already held still "
-                         "longer than any pause of the collector's (runtime/served_pause.py): to measure what "
-                         "playing a chunk from where it moves buys on the same seeds")
-    ev.add_argument("--no-finger-wait", action="store_true",
-                    help="let the arm follow the chunks while the fingers are still closing or opening, instead of "
-                         "holding it until they stop (runtime/finger_wait.py): to measure what the wait buys on "
-                         "the same seeds")
-    ev.add_argument("--no-grasp-steer", action="store_true",
-                    help="leave a retry after a close on nothing to the policy, instead of moving its approach over "
-                         "the object the object query located (runtime/grasp_steer.py): to measure what the steer "
-                         "buys on the same seeds")
-    ev.add_argument("--no-release-guard", action="store_true",
-                    help="let the policy open the fingers on the object anywhere, instead of holding back an opening "
-                         "in the air far from the object query's drop point and carrying the object there "
-                         "(runtime/release_guard.py): to measure what the guard buys on the same seeds")
-    ev.add_argument("--no-handle-height", action="store_true",
-                    help="let the arm sink or rise while the fingers hold a drawer's handle, instead of keeping the "
-                         "height they closed at (runtime/handle_height.py): to measure what that buys")
+    for name, what in STEP_FLAGS:
+        ev.add_argument(f"--no-{name}", action="store_true", help=f"{what}: to measure what it buys on the same seeds")
     ev.add_argument("--samples", type=int, default=1, metavar="K",
                     help="sample K chunks per policy tick in one batch and run the one most coherent with the chunk "
                          "before (policy/coherence.py; default 1: the plain sampler)")
@@ -195,9 +196,7 @@ def _eval(args) -> int:
     settings = {"bundle": str(args.policy), "dr": args.dr, "holdout": held,
                 "time_limit_factor": args.time_limit_factor, "replan_every": args.replan_every,
                 "latency_ms": args.latency_ms, "pace": pace.table, "goal_query": not args.no_goal_query,
-                "served_pause": not args.no_served_pause, "finger_wait": not args.no_finger_wait,
-                "grasp_steer": not args.no_grasp_steer, "release_guard": not args.no_release_guard,
-                "handle_height": not args.no_handle_height,
+                **{n.replace("-", "_"): not getattr(args, "no_" + n.replace("-", "_")) for n, _ in STEP_FLAGS},
                 "samples": args.samples,
                 "phases": list(phased), "realtime": args.realtime, "speed": args.speed,
                 "filmstrips": str(args.out / "filmstrips") if args.filmstrips else None,

@@ -37,6 +37,7 @@ import numpy as np
 from policy.pace import check_speed
 from runtime.chunk_shaper import ChunkShaper
 from runtime.controller import ControllerConfig, ControllerLoop, with_bundle_levels
+from runtime.free_pace import FreePace, ceiling_of
 from runtime.messages import ActionChunk
 from runtime.pace import action_period_ns
 from runtime.shaping import Shaping
@@ -79,6 +80,7 @@ class EpisodeOutcome:
     grasp_steers: int = 0  # chunks moved over the located object after a close on nothing (grasp_steer)
     release_holds: int = 0  # chunks whose opening far from the drop was held back (release_guard)
     handle_levels: int = 0  # chunks whose heights were kept while the fingers held a drawer's handle (handle_height)
+    free_ticks: int = 0  # ticks played at speed 1 in free space, the family's pace being slower (free_pace)
     coherent_picks: list[int] | None = None  # with samples > 1: ticks compared, and where not the first sample won
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
@@ -147,6 +149,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
     rig = SimRig(ep.world, "lockstep")
     rig.gripper.activate()  # as the robot node does at start-up (a 2F-85 ignores commands until activated)
     limits = cell_limits(default_limits(ep.world.variant.name), ep.world)
+    free = FreePace(ceiling_of(limits), shaping.free_pace)
     loop = ControllerLoop(rig.arm, rig.gripper, SafetyFilter(limits, collision=_guard(limits)),
                           with_bundle_levels(controller or ControllerConfig(), bundle.manifest))
     rec = Recorder(ep, image_size=tuple(bundle.image_size))
@@ -190,8 +193,10 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
                 if sequencer is not None and sequencer.update(stage, proprio[-1]):  # the next skill: text, pace
                     out.phase, emb = sequencer.index, sequencer.embedding
                     out.phase_starts.append(round(float(rig.world.time), 2))
-                    dt_ns = action_period_ns(control_hz, sequencer.speed)
-                    per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
+                # the skill's pace, or speed 1 while the hand is in free space (runtime/free_pace.py)
+                dt_ns = action_period_ns(control_hz, free.speed(speed if sequencer is None else sequencer.speed,
+                                                                float(proprio[-1, 2])))
+                per_tick = max(1, round(dt_ns * 1e-9 / rig.control_period))
                 n_exec = bundle.execute.stop - bundle.execute.start
                 # the look's moves first: no query is asked of the frames on its way (they are not the start's)
                 actions = look.chunk(images, proprio, rig.world.gripper_command(), n_exec, dt_ns * 1e-9)
@@ -239,6 +244,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.grasp_steers = shaper.regrasp.steered
         out.release_holds = shaper.guard.held
         out.handle_levels = shaper.level.kept
+        out.free_ticks = free.ticks
         c = shaper.coherence
         out.coherent_picks = [c.chose, c.changed] if shaping.samples > 1 else None
         if sequencer is not None:

@@ -74,15 +74,18 @@ def sim_stack(bundle: str, task: str = "pick_place", seed: int = 0, dr: str = "o
     held-out colours/shapes off the target, as its training data and `sudd eval`'s seen suite do. `shaping`: the
     policy node's steps between the denoiser and the controller (runtime/chunk_shaper.py)."""
     from runtime.nodes.policy_node import PolicyNodeConfig
-    from runtime.nodes.robot_node import RobotNodeConfig
+    from runtime.nodes.robot_node import RobotNodeConfig, scene_holdout
+    from runtime.sim_cell import sim_cell_ceiling
 
     man = bundle_manifest(bundle)
     held = man.get("data", {}).get("holdout") or {}  # what its training data kept out (as `sudd eval`)
     rcfg = RobotNodeConfig(**{"task": task, "seed": seed, "dr": dr, "cameras": tuple(man["cameras"]),
                               "image_size": tuple(man["image_size"]), "holdout_colors": tuple(held.get("colors", ())),
                               "holdout_shapes": tuple(held.get("shapes", ())), **robot_overrides})
+    # the cell the robot node will declare, for the policy node's free-space pace (runtime/free_pace.py)
+    ceiling = sim_cell_ceiling(rcfg.task, rcfg.seed, rcfg.dr, scene_holdout(rcfg), rcfg.limits_file)
     pcfg = PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every, speed=speed,
-                            goal_query=goal_query, phases=phases, **dataclasses.asdict(shaping))
+                            goal_query=goal_query, phases=phases, cell_ceiling_m=ceiling, **dataclasses.asdict(shaping))
     return [NodeSpec(ROBOT, "runtime.nodes.robot_node", rcfg), NodeSpec("policy", "runtime.nodes.policy_node", pcfg)]
 
 
@@ -104,8 +107,20 @@ def hardware_stack(bundle: str, robot_ip: str, camera_serials: dict[str, str], a
                               CameraNodeConfig(name=cam, serial=camera_serials[cam])))
     specs.append(NodeSpec("policy", "runtime.nodes.policy_node",
                           PolicyNodeConfig(bundle=str(bundle), command=command, replan_every=replan_every,
-                                           speed=speed, goal_query=goal_query, phases=phases)))
+                                           speed=speed, goal_query=goal_query, phases=phases,
+                                           cell_ceiling_m=_declared_ceiling(robot_overrides.get("limits_file")))))
     return specs
+
+
+def _declared_ceiling(limits_file: str | None) -> float | None:
+    """The highest fixture a real cell's limits file declares (runtime.free_pace.ceiling_of); None without one:
+    the default limits say nothing of the cell's furniture, so the policy node keeps every family's pace."""
+    if not limits_file:
+        return None
+    from runtime.free_pace import ceiling_of
+    from safety import load_limits
+
+    return ceiling_of(load_limits(limits_file))
 
 
 def answers(event, command_id: str) -> bool:

@@ -17,6 +17,7 @@ class Shaping:
     grasp_steer: bool = True  # runtime/grasp_steer.py
     release_guard: bool = True  # runtime/release_guard.py
     handle_height: bool = True  # runtime/handle_height.py
+    free_pace: bool = True  # runtime/free_pace.py
     samples: int = 1  # policy/coherence.py
 
 

@@ -23,4 +23,15 @@ def cell_limits(limits, world):
     return out
 
 
-__all__ = ["cell_limits"]
+def sim_cell_ceiling(task: str, seed: int, dr: str, holdout, limits_file: str = "") -> float:
+    """The highest fixture (runtime.free_pace.ceiling_of) of the cell the sim robot node of this episode declares:
+    `limits_file` (or the variant's defaults) with the episode's fixtures, as runtime/nodes/robot_node.py builds it."""
+    from runtime.free_pace import ceiling_of
+    from safety import load_limits
+    from sim.build import build_episode
+
+    world = build_episode(task, seed, dr, "fast", holdout=holdout).world
+    return ceiling_of(cell_limits(load_limits(limits_file or None, variant=world.variant.name), world))
+
+
+__all__ = ["cell_limits", "sim_cell_ceiling"]

@@ -26,3 +26,14 @@ def loose_offsets():
         for module in ("policy.goal_query", "policy.goal_query_measure", "policy.bundle_manifest"):
             mp.setattr(f"{module}.MAX_OFFSET_M", 2.0, raising=False)
         yield
+
+
+@pytest.fixture(scope="session")
+def collected_close():
+    """The collector's verified drawer_close episode of seed 100004 under heavy DR: its actions, replayed through
+    the controller and the safety layer, are a push that shuts the drawer (tests of the steps that act on it)."""
+    from datagen.episode import DatagenConfig, run_episode
+
+    ep = run_episode("drawer_close", 100_004, DatagenConfig(dr="heavy"))
+    assert ep.meta["success"]
+    return ep

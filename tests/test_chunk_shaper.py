@@ -56,3 +56,16 @@ def test_every_step_off_plays_the_sample_as_it_came():
 def test_settings_name_the_steps_and_leave_the_others_on():
     assert shaping_of({"handle_height": False, "samples": 4, "bundle": "x"}) == Shaping(handle_height=False, samples=4)
     assert shaping_of({}) == Shaping()
+
+
+def test_sudd_eval_can_turn_off_each_step_and_the_policy_node_takes_each():
+    """`sudd eval --no-NAME` for every step of Shaping (none forgotten when a step is added), and every step a
+    field of the policy node's config, which the launcher fills from a Shaping."""
+    from dataclasses import fields
+
+    from runtime.eval_cli import STEP_FLAGS
+    from runtime.nodes.policy_node import PolicyNodeConfig
+
+    steps = {f.name for f in fields(Shaping)} - {"samples"}
+    assert {name.replace("-", "_") for name, _ in STEP_FLAGS} == steps
+    assert steps <= {f.name for f in fields(PolicyNodeConfig)}

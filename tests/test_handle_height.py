@@ -84,16 +84,7 @@ def test_drawer_puts_phases_name_their_skills_family():
     assert families[1] not in HANDLE_FAMILIES
 
 
-SEED = 100_004
-
-
-@pytest.fixture(scope="module")
-def collected_close():
-    from datagen.episode import DatagenConfig, run_episode
-
-    ep = run_episode("drawer_close", SEED, DatagenConfig(dr="heavy"))
-    assert ep.meta["success"]
-    return ep
+SEED = 100_004  # conftest.collected_close's
 
 
 @pytest.mark.parametrize("keep", [True, False])

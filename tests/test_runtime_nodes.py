@@ -201,7 +201,7 @@ def test_sim_run_builds_the_scene_sudd_eval_runs_for_the_same_seed(tmp_path):
     import json
 
     from runtime.launch import sim_stack
-    from runtime.nodes.robot_node import _holdout
+    from runtime.nodes.robot_node import scene_holdout
     from runtime.nodes.sim_render import _build, model_digest
     from sim.build import build_episode
     from sim.tasks import Holdout
@@ -213,7 +213,7 @@ def test_sim_run_builds_the_scene_sudd_eval_runs_for_the_same_seed(tmp_path):
     robot = sim_stack(str(tmp_path), seed=seed, dr="heavy")[0].config
     assert robot.holdout_colors == ("purple",) and robot.holdout_shapes == ()
     assert config_from_dict(RobotNodeConfig, config_to_dict(robot)) == robot  # survives the trip to the node
-    ours = build_episode("pick_place", seed, "heavy", "fast", holdout=_holdout(robot))
+    ours = build_episode("pick_place", seed, "heavy", "fast", holdout=scene_holdout(robot))
     evals = build_episode("pick_place", seed, "heavy", "fast", holdout=Holdout(colors=("purple",)))
     assert ours.instruction == evals.instruction and "purple" not in ours.instruction
     rendered = _build("pick_place", seed, "heavy", {"colors": ["purple"]})

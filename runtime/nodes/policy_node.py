@@ -86,6 +86,12 @@ class PolicyNodeConfig:
     # Keep the height the fingers closed on a drawer's handle at while they hold it (runtime/handle_height.py): the
     # chunks sink as they pull or push, and the finger links press on the drawer's front; false: the policy's heights.
     handle_height: bool = True
+    # Play a family slowed for its contacts (the drawers) at speed 1 while the TCP is more than 6 cm above the
+    # cell's highest fixture (runtime/free_pace.py); false: at its pace everywhere.
+    free_pace: bool = True
+    # That fixture's height [m, base frame]: the table or the highest keep-out box of the safety limits (the
+    # launcher gives it from the sim cell or `--limits`); None: the cell is not known, no free pace.
+    cell_ceiling_m: float | None = None
     # Chunks sampled per tick in one batch; the one that goes on most like the chunk before runs
     # (policy/coherence.py). 1: the plain sampler, one chunk from fresh noise at every tick.
     samples: int = 1
@@ -173,6 +179,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     from policy.phased import resolve_phased
     from runtime.phases import Sequencer, phases_for
     from runtime.chunk_shaper import ChunkShaper
+    from runtime.free_pace import FreePace
     from runtime.shaping import shaping_of
     from runtime import messages as m
 
@@ -190,7 +197,7 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
     hz = 1e9 / dt_ns
     rng = np.random.default_rng(cfg.seed)
     report: dict = {"chunks": 0, "ticks": 0, "stale_ticks": 0, "idle_ticks": 0, "refused": 0, "accepted": 0,
-                    "errors": 0}
+                    "errors": 0, "free_ticks": 0}
     infer_ms: deque = deque(maxlen=2000)
     obs_to_pub_ms: deque = deque(maxlen=2000)
     frames = {c: _History(64) for c in bundle.cameras}
@@ -251,7 +258,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                                    query=GoalQuery(bundle, text, task, enabled=cfg.goal_query),
                                    objects=ObjectQuery(bundle, text, task, enabled=cfg.goal_query))
                     current["look"] = Look(current["query"])
-                    current["task"] = task
+                    current["task"], current["speed"] = task, speed
+                    current["free"] = FreePace(cfg.cell_ceiling_m, cfg.free_pace)
                     current["shaper"] = ChunkShaper(TurnQuery(bundle, text, task, enabled=cfg.goal_query),
                                                     shaping_of(vars(cfg)))
                     phases = phases_for(task, pace, bundle.instructions, bundle.tasks) if task in phased else None
@@ -314,10 +322,12 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     seq = current["phases"]
                     if seq is not None and seq.update(stage, prop[-1]):  # the next skill: its text, its pace
                         current["emb"] = seq.embedding
-                        dt_ns = action_period_ns(data_hz, seq.speed)
-                        hz = 1e9 / dt_ns
                         event("policy_phase", "info", seq.describe(current["text"]), phase=seq.index,
                               speed=seq.speed)
+                    # the skill's pace, or speed 1 while the hand is in free space (runtime/free_pace.py)
+                    dt_ns = action_period_ns(data_hz, current["free"].speed(
+                        current["speed"] if seq is None else seq.speed, float(prop[-1][2])))
+                    hz, report["free_ticks"] = 1e9 / dt_ns, report["free_ticks"] + current["free"].free
                     q, objects = current["query"], current["objects"]
                     settled, found = q.settled, len(objects.answers)
                     n_exec, request = bundle.execute.stop - bundle.execute.start, 0.0 if g is None else g[1]

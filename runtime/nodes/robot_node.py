@@ -86,7 +86,8 @@ class RobotNodeConfig:
 CONFIG = RobotNodeConfig
 
 
-def _holdout(cfg: RobotNodeConfig):
+def scene_holdout(cfg: RobotNodeConfig):
+    """What the sim scene of this config keeps off its target (the bundle's held-out colours and shapes)."""
     from sim.tasks import Holdout
 
     return Holdout(colors=tuple(cfg.holdout_colors), shapes=tuple(cfg.holdout_shapes), split=cfg.holdout_split)
@@ -138,8 +139,8 @@ def run(cfg: RobotNodeConfig, ctx: NodeContext) -> dict:
 
                 render = SimRenderProcess(cfg.bus, cfg.task, cfg.seed, cfg.dr,
                                           {name: SIM_CAMERAS[name] for name in cfg.cameras}, cfg.image_size,
-                                          cfg.camera_fps, holdout=_holdout(cfg))
-            episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast", holdout=_holdout(cfg))
+                                          cfg.camera_fps, holdout=scene_holdout(cfg))
+            episode = build_episode(cfg.task, cfg.seed, cfg.dr, "fast", holdout=scene_holdout(cfg))
             rig = SimRig(episode.world, "realtime")
             raw_arm, gripper = rig.arm, rig.gripper
             variant = episode.world.variant.name
