@@ -40,13 +40,18 @@ class FreePace:
         self.free = False  # the hand above the line, playing at speed 1
         self.ticks = 0  # ticks played faster than the family's pace
 
+    @property
+    def line(self) -> float | None:
+        """The TCP height [m, base frame] above which a slowed family plays at speed 1; None: never."""
+        return self.ceiling + CLEAR_M if self.enabled else None
+
     def speed(self, family_speed: float, tcp_z: float) -> float:
         """The speed to play this tick's chunk at: `family_speed` (the family's or the phase's pace), or 1 while
         the TCP (height `tcp_z`, base frame) is in free space."""
         if not self.enabled or family_speed >= 1.0:
             self.free = False
             return family_speed
-        line = self.ceiling + CLEAR_M
+        line = self.line
         self.free = tcp_z > line if not self.free else tcp_z >= line - BAND_M
         self.ticks += self.free
         return 1.0 if self.free else family_speed
