@@ -5,6 +5,7 @@ import pytest
 
 from policy.pace import Pace
 from runtime.phases import Phase, phase_at, phases_for
+from runtime.shaping import Shaping
 
 PUT = "place the blue block inside the drawer, then close the drawer"
 
@@ -87,8 +88,10 @@ def test_an_episode_switches_text_and_pace_with_the_grasp_cycles(monkeypatch):
     monkeypatch.setattr(policy.stage, "GraspCycles", _Counting)
     still, times = _Still(), []
     phases = phases_for("drawer_put", Pace({"drawer_open": 0.5, "drawer_close": 0.25}))
+    # the free-space pace off: the still arm stays at home, above the cabinet, where it would play at 1
     out = run_policy_episode(still, "drawer_put", 100_003, command=PUT, time_limit_factor=0.05, latency_s=0.006,
-                             phases=phases, observer=lambda world, inst: times.append(world.time))
+                             phases=phases, observer=lambda world, inst: times.append(world.time),
+                             shaping=Shaping(free_pace=False))
     assert still.texts[:12] == ["open the drawer"] * 4 + [PUT] * 4 + ["close the drawer"] * 4
     assert still.stages[:13] == [0] * 4 + [1] * 4 + [0] * 4 + [1]  # the closing skill counts from its start
     assert out.phase == 2 and out.command == PUT
