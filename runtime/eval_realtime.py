@@ -77,6 +77,7 @@ def run_realtime_episode(job: dict, settings: dict, controller: ControllerConfig
             round(time.monotonic() - t0, 3), "end": end, "stop_reason": first_stop.get("reason", ""),
             "stop_speed_cm_s": None if speed is None else round(100.0 * speed, 1),
             "goal_point": pol.get("goal_point"), "turn_deg": pol.get("turn_deg"), "chunks": pol.get("chunks"),
+            "free_ticks": pol.get("free_ticks"),
             "inference_ms": infer if "p50" in infer else None, "failure": "",
             "realtime": {"controller_on_time": cs.get("on_time"), "controller_rate_hz": cs.get("rate_hz"),
                          "track_err_p50_mrad": cs.get("track_err_p50_mrad"),

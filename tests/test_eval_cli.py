@@ -218,6 +218,7 @@ def test_eval_cli_realtime_runs_the_policy_through_the_live_stack(untrained_bund
         assert set(live["exit_codes"].values()) == {0}, live  # every node of the stack ended cleanly
         assert r["sim_seconds"] >= 0.9 * 0.05 * 30  # it ran the family's time limit (30 s x 0.05) live
         assert "turn_deg" in r and r["turn_deg"] is None  # the policy node's turn, none without a turn query
+        assert r["free_ticks"] == 0  # the node's free-space ticks: none for a family already at speed 1
     para = next(r for r in recs if r["suite"] == "paraphrase")
     assert para["command"] != para["instruction"]  # said in the unseen phrasing, as the lockstep eval does
     assert "Realtime" in (out / "results.md").read_text()
