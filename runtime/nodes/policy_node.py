@@ -268,8 +268,9 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     hz = 1e9 / dt_ns
                     q = current["query"]
                     asked = f"; where to put it asked as '{q.swapped}'" if q.active else ""
-                    line = current["free"].line
-                    asked += f"; a slower pace plays at 1 above z {line:.2f} m (free space)" if line is not None else ""
+                    line = current["free"].line  # said where a pace below 1 may play: the family's or a phase's
+                    if line is not None and (speed < 1 or phases):
+                        asked += f"; a slower pace plays at 1 above z {line:.2f} m (free space)"
                     event("command_accepted", "info", f"{tag}accepted '{text}' (closest trained instruction "
                                                       f"'{best}', cosine {cos:.2f}; {task or 'no known family'} "
                                                       f"at speed {speed:g}{asked})", cosine=cos, speed=speed)
