@@ -108,6 +108,7 @@ def test_end_to_end_refusal_and_malformed_chunks(bundle):
     assert "known tasks: pick_place" in refusal.message and info["robot"]["instruction"] in refusal.message
     accepted = next(e for e in w.events if e.kind == "command_accepted")
     assert accepted.message.startswith("[t1] accepted")
+    assert "free space" not in accepted.message  # pick_place plays at 1 already: no line to name
     lat = rob["latency_ms"]["receive"]
     print(f"\nobs->receive p50 {lat['p50']:.1f} ms p99 {lat['p99']:.1f} ms; controller",
           {k: round(v, 3) for k, v in rob["controller_summary"].items() if isinstance(v, float)})
