@@ -3,7 +3,7 @@
 The steps, in this order, each its own module with its own reasons: the coherent pick among the samples drawn
 (policy/coherence.py), the served pause (runtime/served_pause.py), the wrist turn (runtime/wrist_turn.py), the grasp
 steer (runtime/grasp_steer.py), the release guard (runtime/release_guard.py), the handle height
-(runtime/handle_height.py) and the finger wait (runtime/finger_wait.py). The runtime's policy node and `sudd eval`
+(runtime/handle_height.py), the empty close (runtime/empty_close.py) and the finger wait (runtime/finger_wait.py). The runtime's policy node and `sudd eval`
 both run them through this class, so that what is evaluated is what runs on the robot. Only the policy's own chunks
 go through it: a look's or a phase retreat's moves do not (`forget` then, so the next pick starts afresh).
 
@@ -16,6 +16,7 @@ import numpy as np
 
 from policy.coherence import Coherence
 from policy.stage import GRIPPER_COLUMN
+from runtime.empty_close import EmptyClose
 from runtime.finger_wait import FingerWait
 from runtime.grasp_steer import GraspSteer
 from runtime.handle_height import HandleHeight
@@ -33,6 +34,8 @@ FIRST_WORDS = (
      "held closed and carried towards it"),
     ("level", "kept", "policy_handle_height", "the chunks left the height the fingers closed on the drawer's handle "
      "at: kept there while they hold it"),
+    ("empty", "opened", "policy_empty_close", "the fingers stood shut on nothing: opened where they are, as the data "
+     "collector reopens after a missed grasp"),
 )
 
 
@@ -47,6 +50,7 @@ class ChunkShaper:
         self.regrasp = GraspSteer(enabled=shaping.grasp_steer)
         self.guard = ReleaseGuard(enabled=shaping.release_guard)
         self.level = HandleHeight(enabled=shaping.handle_height)
+        self.empty = EmptyClose(enabled=shaping.empty_close)
         self.firsts: list[tuple[str, str]] = []  # (event kind, message) of the steps that first acted at this tick
 
     def chunk(self, chunks: np.ndarray, images: dict, proprio: np.ndarray, stage: int, objects, request: float,
@@ -65,6 +69,7 @@ class ChunkShaper:
         a = self.regrasp.chunk(a, objects, stage, request, dt)
         a = self.guard.chunk(a, objects, stage, request, closure, dt)
         a = self.level.chunk(a, family, request, closure, float(now[2]))
+        a = self.empty.chunk(a, request, closure, t_obs)
         self.firsts = [(kind, words) for (step, count, kind, words), n in zip(FIRST_WORDS, before)
                        if getattr(getattr(self, step), count) and not n]
         return self.wait.chunk(a, now, t_obs)

@@ -58,6 +58,8 @@ STEP_FLAGS = (
                       "height they closed at (runtime/handle_height.py)"),
     ("free-pace", "play a slowed family (the drawers) at its pace everywhere, instead of at speed 1 while the hand "
                   "is high above the cell's fixtures (runtime/free_pace.py)"),
+    ("empty-close", "leave fingers shut on nothing to the policy, instead of opening them where they are after 1 s, "
+                    "as the data collector reopens after a missed grasp (runtime/empty_close.py)"),
 )
 
 

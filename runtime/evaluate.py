@@ -81,6 +81,7 @@ class EpisodeOutcome:
     release_holds: int = 0  # chunks whose opening far from the drop was held back (release_guard)
     handle_levels: int = 0  # chunks whose heights were kept while the fingers held a drawer's handle (handle_height)
     free_ticks: int = 0  # ticks played at speed 1 in free space, the family's pace being slower (free_pace)
+    empty_opens: int = 0  # chunks asked open after the fingers stood shut on nothing (empty_close)
     coherent_picks: list[int] | None = None  # with samples > 1: ticks compared, and where not the first sample won
     goal_point: list[float] | None = None  # the goal query's release point, base frame [m] (policy.goal_query)
     look_seconds: float | None = None  # spent on the goal query's look, there and back (runtime.look)
@@ -245,6 +246,7 @@ def run_policy_episode(bundle, task: str, seed: int, *, dr: str = "heavy", holdo
         out.release_holds = shaper.guard.held
         out.handle_levels = shaper.level.kept
         out.free_ticks = free.ticks
+        out.empty_opens = shaper.empty.opened
         c = shaper.coherence
         out.coherent_picks = [c.chose, c.changed] if shaping.samples > 1 else None
         if sequencer is not None:

@@ -18,6 +18,7 @@ class Shaping:
     release_guard: bool = True  # runtime/release_guard.py
     handle_height: bool = True  # runtime/handle_height.py
     free_pace: bool = True  # runtime/free_pace.py
+    empty_close: bool = True  # runtime/empty_close.py
     samples: int = 1  # policy/coherence.py
 
 

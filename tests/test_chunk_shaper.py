@@ -1,5 +1,6 @@
 """runtime/chunk_shaper.py: the steps between the denoiser and the controller, as `sudd eval` and the node run them."""
 
+from dataclasses import fields
 from types import SimpleNamespace
 
 import numpy as np
@@ -44,8 +45,21 @@ def test_a_closing_that_sinks_is_held_level_with_one_word_to_the_operator():
     assert np.allclose(out[:, 2], 0.115) and s.firsts == []
 
 
+def test_fingers_shut_on_nothing_are_opened_once_with_one_word():
+    """A pick_place grasp closed on air, the policy asking to stay closed: after the empty close's hold the chunks ask
+    the fingers open (runtime/empty_close.py), and the operator is told once."""
+    s = ChunkShaper(NOTHING)
+    words, grips = [], []
+    for k in range(12):  # shut on nothing since the first tick, 0.2 s apart
+        out = _tick(s, (k + 1) * DT, "pick_place", 0.40, 0.03, 0.99, 1.0, 1.0)
+        words += s.firsts
+        grips.append(float(out[0, G]))
+    assert grips[:5] == [1.0] * 5 and grips[5:] == [0.0] * 7  # 1 s after the first shut tick
+    assert [k for k, _ in words] == ["policy_empty_close"] and s.empty.opened == 7
+
+
 def test_every_step_off_plays_the_sample_as_it_came():
-    off = Shaping(served_pause=False, finger_wait=False, grasp_steer=False, release_guard=False, handle_height=False)
+    off = Shaping(**{f.name: False for f in fields(Shaping) if f.name != "samples"})
     s = ChunkShaper(NOTHING, off)
     chunks = _chunks(0.41, 0.10, 0.0)
     out = s.chunk(chunks, {}, _proprio(0.41, 0.125, 0.8), 0, NOTHING, 1.0, "drawer_close", 1.0, DT, 1.0)

@@ -86,9 +86,8 @@ class PolicyNodeConfig:
     # Keep the height the fingers closed on a drawer's handle at while they hold it (runtime/handle_height.py): the
     # chunks sink as they pull or push, and the finger links press on the drawer's front; false: the policy's heights.
     handle_height: bool = True
-    # Play a family slowed for its contacts (the drawers) at speed 1 while the TCP is more than 6 cm above the
-    # cell's highest fixture (runtime/free_pace.py); false: at its pace everywhere.
-    free_pace: bool = True
+    empty_close: bool = True  # open fingers shut on nothing for 1 s where they are (runtime/empty_close.py)
+    free_pace: bool = True  # a slowed family at speed 1 in free space, high above the cell (runtime/free_pace.py)
     # That fixture's height [m, base frame]: the table or the highest keep-out box of the safety limits (the
     # launcher gives it from the sim cell or `--limits`); None: the cell is not known, no free pace.
     cell_ceiling_m: float | None = None
