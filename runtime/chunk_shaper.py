@@ -3,8 +3,9 @@
 The steps, in this order, each its own module with its own reasons: the coherent pick among the samples drawn
 (policy/coherence.py), the served pause (runtime/served_pause.py), the wrist turn (runtime/wrist_turn.py), the grasp
 steer (runtime/grasp_steer.py), the release guard (runtime/release_guard.py), the handle height
-(runtime/handle_height.py), the empty close (runtime/empty_close.py) and the finger wait (runtime/finger_wait.py). The runtime's policy node and `sudd eval`
-both run them through this class, so that what is evaluated is what runs on the robot. Only the policy's own chunks
+(runtime/handle_height.py), the empty close (runtime/empty_close.py) and the finger wait (runtime/finger_wait.py).
+The runtime's policy node and `sudd eval` both run them through this class, so that what is evaluated is what runs
+on the robot. Only the policy's own chunks
 go through it: a look's or a phase retreat's moves do not (`forget` then, so the next pick starts afresh).
 
 numpy only: the runtime's policy node and `sudd eval` both use it.

@@ -37,8 +37,10 @@ class EmptyClose:
         """The chunk (n, 10) with its closed rows asked open once the fingers have stood shut on nothing for
         HOLD_S, or as it was (module doc). `request` and `closure` the gripper's standing position request and
         measured closure (0 open .. 1 closed); `t` [s] the observation's time."""
-        shut = request >= CLOSED and closure >= AIR
-        self.since = (self.since if self.since is not None else t) if shut else None
+        if not (request >= CLOSED and closure >= AIR):
+            self.since = None
+        elif self.since is None:
+            self.since = t
         if not (self.enabled and self.since is not None and t - self.since >= HOLD_S - 1e-9):
             return actions
         closed = actions[:, GRIPPER_COLUMN] >= CLOSED

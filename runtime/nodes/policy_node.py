@@ -329,7 +329,8 @@ def run(cfg: PolicyNodeConfig, ctx: NodeContext) -> dict:
                     # the skill's pace, or speed 1 while the hand is in free space (runtime/free_pace.py)
                     dt_ns = action_period_ns(data_hz, current["free"].speed(
                         current["speed"] if seq is None else seq.speed, float(prop[-1][2])))
-                    hz, report["free_ticks"] = 1e9 / dt_ns, report["free_ticks"] + current["free"].free
+                    hz = 1e9 / dt_ns
+                    report["free_ticks"] += current["free"].free
                     q, objects = current["query"], current["objects"]
                     settled, found = q.settled, len(objects.answers)
                     n_exec, request = bundle.execute.stop - bundle.execute.start, 0.0 if g is None else g[1]
